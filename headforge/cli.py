@@ -1,0 +1,153 @@
+"""The ``headforge`` command line (typer). Every user-facing error is one line, exit code 1."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+
+from headforge.errors import HeadforgeError
+
+app = typer.Typer(help="headforge: animatable 3D head avatars from phone videos or head scans.",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+model_app = typer.Typer(help="Parametric head models: build, inspect, fit to a photo.", no_args_is_help=True)
+app.add_typer(model_app, name="model")
+console = Console(stderr=True)
+
+MODEL_OPT = typer.Option("open-head", "--model", "-m", help="open-head (built in) or flame (your own files)")
+FLAME_OPT = typer.Option(None, "--flame-dir", help="folder with FLAME's generic_model.pkl (or HEADFORGE_FLAME_DIR)")
+
+
+def _progress(message: str) -> None:
+    console.print(f"[dim]{time.strftime('%H:%M:%S')}[/] {message}")
+
+
+def _load_model(name: str, flame_dir: Optional[str]):
+    from headforge.head import create
+
+    return create(name, flame_dir=flame_dir, progress=_progress)
+
+
+def _read_image(path: Path):
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise HeadforgeError(f"image not found: {path}")
+    try:
+        return np.asarray(Image.open(path).convert("RGB"))
+    except (UnidentifiedImageError, OSError) as exc:
+        raise HeadforgeError(f"cannot read image {path}: {exc}") from None
+
+
+def _write_png(array, path: Path) -> None:
+    """Write through a temporary name so an interrupted run leaves no half PNG."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial.png")
+    Image.fromarray(array).save(tmp)
+    tmp.replace(path)
+
+
+@model_app.command("info")
+def model_info(model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
+               as_json: bool = typer.Option(False, "--json", help="print one JSON object")) -> None:
+    """Sizes, bases, regions and landmarks of a head model."""
+    head = _load_model(model, flame_dir)
+    info = {
+        "model": head.name, "vertices": head.num_vertices, "faces": int(head.faces.shape[0]),
+        "joints": len(head.joint_names), "joint_names": head.joint_names, "n_shape": head.n_shape,
+        "n_expr": head.n_expr, "expression_names": head.expression_names,
+        "shape_variance_explained": head.meta.get("shape_variance_explained"),
+        "landmarks": head.num_landmarks, "landmark_kind": head.meta.get("landmarks", {}).get("kind"),
+        "landmark_median_px": head.meta.get("landmarks", {}).get("landmark_median_px"),
+        "regions": {name: int(head.region(name).numel()) for name in head.region_names},
+        "pose_correctives": head.posedirs is not None, "source": head.meta.get("source"),
+    }
+    if as_json:
+        print(json.dumps(info))
+        return
+    for key, value in info.items():
+        if key != "expression_names":
+            console.print(f"[bold]{key}[/]: {value}")
+    console.print(f"[bold]expression_names[/]: {', '.join(info['expression_names'][:8])}, ...")
+
+
+@model_app.command("build")
+def model_build(rebuild: bool = typer.Option(False, help="rebuild even if cached")) -> None:
+    """Build and cache the open-head model (identity PCA, expressions, landmark embedding)."""
+    from headforge.head.open_head import cache_path, load_open_head
+
+    data = load_open_head(rebuild=rebuild, progress=_progress)
+    console.print(f"open-head: {len(data.v_template)} vertices, cached at {cache_path()}")
+
+
+@model_app.command("fit-image")
+def model_fit_image(image: Path = typer.Argument(..., help="a photo with one face"),
+                    output: Path = typer.Option(..., "-o", "--output", help="overlay PNG to write"),
+                    model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
+                    steps: int = typer.Option(300, help="Adam steps")) -> None:
+    """Fit the head model (rigid + shape + expression) to MediaPipe landmarks of a photo."""
+    from headforge.head.fit import ImageFitConfig, fit_image, overlay
+
+    pixels = _read_image(image)
+    head = _load_model(model, flame_dir)
+    _progress(f"fitting {head.name} to {image.name} ({steps} steps)")
+    fit = fit_image(head, pixels, ImageFitConfig(steps=steps))
+    _write_png(overlay(pixels, fit, head.faces.numpy()), output)
+    summary = {"image": str(image), "output": str(output), "landmark_median_px": round(fit.median_px, 3),
+               "landmark_median_px_inner": round(fit.median_px_inner, 3)}
+    print(json.dumps(summary))
+
+
+@app.command("demo")
+def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder")) -> None:
+    """The main job on the embedded default: build open-head, fit it to a bundled photo,
+    write a report folder (model info, overlay PNG, metrics JSON)."""
+    import matplotlib.cbook
+
+    from headforge.head.fit import fit_image, overlay
+
+    head = _load_model("open-head", None)
+    photo = Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))
+    pixels = _read_image(photo)
+    _progress("fitting open-head to grace_hopper.jpg (matplotlib's sample photo)")
+    fit = fit_image(head, pixels)
+    tmp = output.with_name(output.name + ".partial")
+    tmp.mkdir(parents=True, exist_ok=True)
+    _write_png(overlay(pixels, fit, head.faces.numpy()), tmp / "fit_grace_hopper.png")
+    metrics = {"model": head.name, "vertices": head.num_vertices, "landmarks": head.num_landmarks,
+               "landmark_embedding_median_px": head.meta.get("landmarks", {}).get("landmark_median_px"),
+               "fit_grace_hopper_median_px": fit.median_px}
+    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if output.exists():
+        import shutil
+
+        shutil.rmtree(output)
+    tmp.replace(output)
+    console.print(f"report written to {output}/ (fit_grace_hopper.png, metrics.json)")
+    print(json.dumps(metrics))
+
+
+def main() -> None:
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    try:
+        app()
+    except HeadforgeError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        sys.exit(1)
+    except KeyboardInterrupt:
+        console.print("[red]interrupted[/]")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Rendering: cameras and a ray-cast reference renderer (the differentiable paths come later)."""
