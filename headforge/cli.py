@@ -34,10 +34,15 @@ def _load_model(name: str, flame_dir: Optional[str]):
     return create(name, flame_dir=flame_dir, progress=_progress)
 
 
-def _read_image(path: Path):
+def _read_image(path: Path, frame: int = 0):
+    """An RGB uint8 image from a picture file, or frame ``frame`` of a video file."""
     import numpy as np
     from PIL import Image, UnidentifiedImageError
 
+    from headforge.data.video import is_video, read_frame
+
+    if is_video(path):
+        return read_frame(path, frame)
     if not path.is_file():
         raise HeadforgeError(f"image not found: {path}")
     try:
@@ -90,14 +95,17 @@ def model_build(rebuild: bool = typer.Option(False, help="rebuild even if cached
 
 
 @model_app.command("fit-image")
-def model_fit_image(image: Path = typer.Argument(..., help="a photo with one face"),
+def model_fit_image(image: Path = typer.Argument(..., help="a photo with one face, or a video (see --frame)"),
                     output: Path = typer.Option(..., "-o", "--output", help="overlay PNG to write"),
                     model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
-                    steps: int = typer.Option(300, help="Adam steps")) -> None:
+                    steps: int = typer.Option(300, help="Adam steps"),
+                    frame: int = typer.Option(0, help="frame index when IMAGE is a video")) -> None:
     """Fit the head model (rigid + shape + expression) to MediaPipe landmarks of a photo."""
     from headforge.head.fit import ImageFitConfig, fit_image, overlay
 
-    pixels = _read_image(image)
+    if steps < 1:
+        raise HeadforgeError(f"--steps must be >= 1, got {steps}")
+    pixels = _read_image(image, frame)
     head = _load_model(model, flame_dir)
     _progress(f"fitting {head.name} to {image.name} ({steps} steps)")
     fit = fit_image(head, pixels, ImageFitConfig(steps=steps))

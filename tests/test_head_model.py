@@ -143,3 +143,10 @@ def test_save_load_round_trip(tiny_data, tmp_path):
     (tmp_path / "bad.safetensors").write_bytes(b"not a model")
     with pytest.raises(HeadforgeError, match="cannot read head model file"):
         HeadModelData.load(tmp_path / "bad.safetensors")
+
+
+def test_folded_joint_bases_equal_regressed_joints(tiny_data):
+    model = HeadModel(tiny_data).double()
+    shape, expr = torch.randn(3, 4, dtype=torch.float64), torch.randn(3, 3, dtype=torch.float64)
+    out = model(shape=shape, expression=expr)
+    torch.testing.assert_close(out.joints, lbs.regress_joints(model.j_regressor, out.shaped))

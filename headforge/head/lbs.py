@@ -10,16 +10,19 @@ import roma
 import torch
 
 
-def blend_shapes(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Linear blendshape offsets.
+def blend_shapes(coeffs: torch.Tensor, dirs: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
+    """Linear blendshapes: ``base + coeffs @ dirs``.
 
     Args:
         coeffs: (B, K) coefficients.
-        dirs: (V*3, K) blendshape directions, flattened vertex-major (v0x, v0y, v0z, v1x, ...).
+        dirs: (K, N*3) directions, each row flattened point-major (p0x, p0y, p0z, p1x, ...).
+        base: optional (N, 3) points the offsets are added to (fused into one addmm).
     Returns:
-        (B, V, 3) offsets.
+        (B, N, 3).
     """
-    return (coeffs @ dirs.T).reshape(coeffs.shape[0], -1, 3)
+    if base is None:
+        return (coeffs @ dirs).reshape(coeffs.shape[0], -1, 3)
+    return torch.addmm(base.reshape(1, -1), coeffs, dirs).reshape(coeffs.shape[0], -1, 3)
 
 
 def pose_to_rotmats(pose: torch.Tensor) -> torch.Tensor:
@@ -87,14 +90,23 @@ def skin_vertices(
         (B, V, 3) posed vertices.
     """
     B, J = transforms.shape[:2]
-    blended = (weights @ transforms[..., :3, :].reshape(B, J, 12)).reshape(B, -1, 3, 4)
-    return torch.einsum("bvij,bvj->bvi", blended[..., :3], vertices) + blended[..., 3]
+    # Blend the 3x4 matrices column by column: (B, V, 12) = [c0 | c1 | c2 | t], so the
+    # product with (x, y, z, 1) is three broadcast multiply-adds on contiguous slices.
+    columns = transforms[..., :3, :].transpose(-1, -2).reshape(B, J, 12)
+    blended = weights @ columns
+    x, y, z = vertices[..., 0:1], vertices[..., 1:2], vertices[..., 2:3]
+    return blended[..., 0:3] * x + blended[..., 3:6] * y + blended[..., 6:9] * z + blended[..., 9:12]
+
+
+def regress_joints(j_regressor: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """(J, V) regressor, (B, V, 3) vertices -> (B, J, 3) joints."""
+    return torch.einsum("jv,bvc->bjc", j_regressor, vertices)
 
 
 def lbs(
     shaped: torch.Tensor,
     pose: torch.Tensor,
-    j_regressor: torch.Tensor,
+    joints: torch.Tensor,
     parents: torch.Tensor,
     weights: torch.Tensor,
     posedirs: torch.Tensor | None = None,
@@ -104,7 +116,7 @@ def lbs(
     Args:
         shaped: (B, V, 3) template + identity + expression offsets.
         pose: (B, J, 3) axis-angle rotations, joint order as ``parents``.
-        j_regressor: (J, V) joint regressor.
+        joints: (B, J, 3) rest joint locations of ``shaped`` (see :func:`regress_joints`).
         parents: (J,) kinematic tree.
         weights: (V, J) skinning weights.
         posedirs: optional (9*(J-1), V*3) pose-corrective directions (FLAME/SMPL layout,
@@ -112,7 +124,6 @@ def lbs(
     Returns:
         vertices (B, V, 3) and joints (B, J, 3), both posed.
     """
-    joints = torch.einsum("jv,bvc->bjc", j_regressor, shaped)
     rotmats = pose_to_rotmats(pose)
     if posedirs is not None:
         eye = torch.eye(3, dtype=shaped.dtype, device=shaped.device)
@@ -132,5 +143,5 @@ def surface_points(
     Returns:
         (B, L, 3).
     """
-    corners = vertices[:, faces[face_ids]]  # (B, L, 3, 3)
-    return (corners * bary[None, :, :, None]).sum(dim=2)
+    corners = vertices.index_select(1, faces[face_ids].reshape(-1)).view(vertices.shape[0], -1, 3, 3)
+    return (bary.to(vertices.dtype)[None, :, None, :] @ corners).squeeze(2)  # (1,3) @ (3,3) per point

@@ -162,10 +162,15 @@ class HeadModel(torch.nn.Module):
         self.register_buffer("faces", i64(data.faces))
         self.register_buffer("uvs", f32(data.uvs))
         self.register_buffer("uv_faces", i64(data.uv_faces))
-        # Identity and expression directions stacked as one (V*3, S+E) matrix: one matmul.
+        # Identity and expression directions stacked as one (S+E, V*3) matrix: one addmm.
         dirs = np.concatenate([data.shapedirs, data.exprdirs], axis=2).reshape(V * 3, -1)
-        self.register_buffer("blenddirs", f32(dirs))
+        self.register_buffer("blenddirs", f32(np.ascontiguousarray(dirs.T)))
         self.register_buffer("j_regressor", f32(data.j_regressor))
+        # Joints are linear in the blend coefficients: fold the regressor into the bases.
+        J = len(data.parents)
+        self.register_buffer("j_template", f32(data.j_regressor @ data.v_template))
+        self.register_buffer("j_blenddirs", f32(np.einsum("jv,vck->kjc", data.j_regressor,
+                                                          dirs.reshape(V, 3, -1)).reshape(-1, J * 3)))
         self.register_buffer("weights", f32(data.weights))
         self.register_buffer("parents", i64(data.parents))
         if data.posedirs is not None and use_pose_correctives:
@@ -233,11 +238,13 @@ class HeadModel(torch.nn.Module):
         zeros = lambda n: torch.zeros(B, n, dtype=dtype, device=device)  # noqa: E731
         coeffs = torch.cat([shape if shape is not None else zeros(self.n_shape),
                             expression if expression is not None else zeros(self.n_expr)], dim=1)
-        shaped = self.v_template + lbs_fn.blend_shapes(coeffs.to(dtype), self.blenddirs)
+        coeffs = coeffs.to(dtype)
+        shaped = lbs_fn.blend_shapes(coeffs, self.blenddirs, self.v_template)
+        rest_joints = lbs_fn.blend_shapes(coeffs, self.j_blenddirs, self.j_template)
         pose = torch.stack([p if p is not None else zeros(3) for p in poses], dim=1).to(dtype)
         if self.joint_limits:
             pose = lbs_fn.limit_joint_rotations(pose, self.joint_half_range)
-        vertices, joints = lbs_fn.lbs(shaped, pose, self.j_regressor, self.parents, self.weights, self.posedirs)
+        vertices, joints = lbs_fn.lbs(shaped, pose, rest_joints, self.parents, self.weights, self.posedirs)
         if translation is not None:
             vertices = vertices + translation[:, None].to(dtype)
             joints = joints + translation[:, None].to(dtype)

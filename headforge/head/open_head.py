@@ -36,7 +36,7 @@ from headforge.paths import cache_dir
 log = logging.getLogger(__name__)
 
 # Bump on any change to the build code: it names the cache file, so users get a rebuild.
-RECIPE_VERSION = 2
+RECIPE_VERSION = 3
 
 # anny axes -> headforge axes: (x, y, z)_hf = (x, z, -y)_anny. A proper rotation (det = +1).
 ANNY_TO_HF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

@@ -1,0 +1,1 @@
+"""Data: video decoding (and, later, preprocessing and datasets)."""
