@@ -4,6 +4,8 @@ Prints progress to stderr and one JSON line of figures at the end on stdout:
   forward_ms_b64            median ms of a float32 forward pass, batch 64, 2 CPU threads
                             (shape + expression + all five joint poses + landmarks)
   forward_backward_ms_b64   the same plus a backward pass to every input
+  forward_ms_b64_compiled   the forward through torch.compile (Inductor C++), with --compile;
+                            checked against the eager model, compile time in compile_seconds
   landmark_median_px        median distance (px, 512x512 renders) between MediaPipe's detections and
                             the embedded landmarks, on identities/expressions/views not used to build it
   landmark_median_px_inner  the same without MediaPipe's 36 face-oval (silhouette) points
@@ -39,6 +41,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rebuild", action="store_true", help="time a fresh build of open-head")
+    parser.add_argument("--compile", action="store_true", help="also time torch.compile(model)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -72,10 +75,29 @@ def main() -> None:
     log(f"timing forward passes (batch {B}, {args.threads} threads, median of {args.repeats})")
     fwd = timed(forward, args.repeats)
     fwd_bwd = timed(forward_backward, args.repeats)
+    compiled_ms = compile_seconds = None
+    if args.compile:
+        log("compiling the model with torch.compile (one-time cost)")
+        start = time.perf_counter()
+        compiled = torch.compile(model)
+        with torch.no_grad():
+            fast = compiled(**inputs).vertices
+            reference = model(**inputs).vertices
+        compile_seconds = time.perf_counter() - start
+        if not torch.allclose(fast, reference, atol=1e-5):
+            raise SystemExit("compiled model disagrees with the eager model")
+
+        def forward_compiled():
+            with torch.no_grad():
+                compiled(**inputs)
+
+        compiled_ms = timed(forward_compiled, args.repeats)
     log("evaluating the landmark embedding on held-out renders")
     lmk = evaluate_embedding(data)
     result = {"model": "open-head", "vertices": model.num_vertices, "threads": args.threads,
               "forward_ms_b64": round(fwd, 3), "forward_backward_ms_b64": round(fwd_bwd, 3),
+              "forward_ms_b64_compiled": None if compiled_ms is None else round(compiled_ms, 3),
+              "compile_seconds": None if compile_seconds is None else round(compile_seconds, 1),
               "landmark_median_px": round(lmk["landmark_median_px"], 3),
               "landmark_median_px_inner": round(lmk["landmark_median_px_inner"], 3),
               "landmark_p90_px": round(lmk["landmark_p90_px"], 3), "landmark_renders": lmk["renders_used"],

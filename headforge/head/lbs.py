@@ -6,6 +6,8 @@ L = landmarks. Positions are in metres, in the canonical head space (y up, face 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import roma
 import torch
 
@@ -46,7 +48,7 @@ def limit_joint_rotations(pose: torch.Tensor, half_range: torch.Tensor) -> torch
 
 
 def rigid_transforms(
-    rotmats: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor
+    rotmats: torch.Tensor, joints: torch.Tensor, parents: Sequence[int] | torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Forward kinematics.
 
@@ -54,20 +56,21 @@ def rigid_transforms(
         rotmats: (B, J, 3, 3) local joint rotations.
         joints: (B, J, 3) rest joint locations.
         parents: (J,) parent index per joint, -1 for the root; parents precede children.
+            Python ints are best: the tree is static, and torch.compile sees no tensor reads.
     Returns:
         posed_joints (B, J, 3) and the relative transforms (B, J, 4, 4) that map rest-pose
         points to posed points (the skinning matrices).
     """
     B, J = joints.shape[:2]
-    rel_joints = joints.clone()
-    rel_joints[:, 1:] = joints[:, 1:] - joints[:, parents[1:]]
+    parents = [int(p) for p in parents]
+    rel_joints = torch.cat([joints[:, :1], joints[:, 1:] - joints[:, parents[1:]]], dim=1)
     local = torch.zeros(B, J, 4, 4, dtype=joints.dtype, device=joints.device)
     local[..., :3, :3] = rotmats
     local[..., :3, 3] = rel_joints
     local[..., 3, 3] = 1.0
     chain = [local[:, 0]]
     for j in range(1, J):
-        chain.append(chain[int(parents[j])] @ local[:, j])
+        chain.append(chain[parents[j]] @ local[:, j])
     world = torch.stack(chain, dim=1)
     posed_joints = world[..., :3, 3]
     # Remove the rest-pose joint location so the transform acts on rest-pose vertices.
@@ -107,7 +110,7 @@ def lbs(
     shaped: torch.Tensor,
     pose: torch.Tensor,
     joints: torch.Tensor,
-    parents: torch.Tensor,
+    parents: Sequence[int] | torch.Tensor,
     weights: torch.Tensor,
     posedirs: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:

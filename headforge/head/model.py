@@ -173,6 +173,7 @@ class HeadModel(torch.nn.Module):
                                                           dirs.reshape(V, 3, -1)).reshape(-1, J * 3)))
         self.register_buffer("weights", f32(data.weights))
         self.register_buffer("parents", i64(data.parents))
+        self.parent_list = tuple(int(p) for p in data.parents)  # static tree for the forward pass
         if data.posedirs is not None and use_pose_correctives:
             self.register_buffer("posedirs", f32(data.posedirs.reshape(V * 3, -1).T))
         else:
@@ -244,7 +245,7 @@ class HeadModel(torch.nn.Module):
         pose = torch.stack([p if p is not None else zeros(3) for p in poses], dim=1).to(dtype)
         if self.joint_limits:
             pose = lbs_fn.limit_joint_rotations(pose, self.joint_half_range)
-        vertices, joints = lbs_fn.lbs(shaped, pose, rest_joints, self.parents, self.weights, self.posedirs)
+        vertices, joints = lbs_fn.lbs(shaped, pose, rest_joints, self.parent_list, self.weights, self.posedirs)
         if translation is not None:
             vertices = vertices + translation[:, None].to(dtype)
             joints = joints + translation[:, None].to(dtype)
