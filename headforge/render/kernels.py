@@ -1,0 +1,215 @@
+"""Fast visibility kernels (numba, multithreaded over image row bands) and their pure-PyTorch
+references. Visibility is not differentiable; gradients come from recomputing barycentrics and
+point alphas in torch from the ids these kernels return (see mesh.py and points.py).
+
+Screen space: x right, y down in pixels, pixel centres at integer coordinates; z is the
+camera depth (metres, > 0 in front of the camera).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+BAND = 8  # rows per parallel work item
+
+
+@numba.njit(cache=True)
+def _bin_rows(ymin, ymax, n_bands, band):
+    """Lists of primitive ids per row band, for primitives covering rows [ymin, ymax]."""
+    counts = np.zeros(n_bands + 1, np.int64)
+    for i in range(ymin.shape[0]):
+        if ymax[i] < ymin[i]:
+            continue
+        for b in range(ymin[i] // band, ymax[i] // band + 1):
+            counts[b + 1] += 1
+    offsets = np.cumsum(counts)
+    items = np.empty(offsets[-1], np.int64)
+    fill = offsets[:-1].copy()
+    for i in range(ymin.shape[0]):
+        if ymax[i] < ymin[i]:
+            continue
+        for b in range(ymin[i] // band, ymax[i] // band + 1):
+            items[fill[b]] = i
+            fill[b] += 1
+    return offsets, items
+
+
+@numba.njit(parallel=True, cache=True)
+def _rasterize(xyz, faces, height, width, near, face_out, bary_out, depth_out):
+    """Z-buffer rasterization of one image. xyz: (V, 3) screen x, y and depth z."""
+    F = faces.shape[0]
+    ymin = np.empty(F, np.int64)
+    ymax = np.empty(F, np.int64)
+    for f in range(F):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        za, zb, zc = xyz[a, 2], xyz[b, 2], xyz[c, 2]
+        ok = za > near and zb > near and zc > near
+        lo = min(xyz[a, 1], xyz[b, 1], xyz[c, 1])
+        hi = max(xyz[a, 1], xyz[b, 1], xyz[c, 1])
+        if not ok or not (np.isfinite(lo) and np.isfinite(hi)) or hi < 0 or lo > height - 1:
+            ymin[f], ymax[f] = 1, 0  # skipped: behind the near plane, NaN, or off-screen
+        else:
+            ymin[f] = max(0, int(np.ceil(lo)))
+            ymax[f] = min(height - 1, int(np.floor(hi)))
+    n_bands = (height + BAND - 1) // BAND
+    offsets, items = _bin_rows(ymin, ymax, n_bands, BAND)
+    for band in numba.prange(n_bands):
+        r0 = band * BAND
+        r1 = min(r0 + BAND, height) - 1
+        for k in range(offsets[band], offsets[band + 1]):
+            f = items[k]
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            x0, y0, z0 = xyz[a, 0], xyz[a, 1], xyz[a, 2]
+            x1, y1, z1 = xyz[b, 0], xyz[b, 1], xyz[b, 2]
+            x2, y2, z2 = xyz[c, 0], xyz[c, 1], xyz[c, 2]
+            area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+            if area == 0.0 or not np.isfinite(area):
+                continue
+            xs = max(0, int(np.ceil(min(x0, x1, x2))))
+            xe = min(width - 1, int(np.floor(max(x0, x1, x2))))
+            ys = max(r0, ymin[f])
+            ye = min(r1, ymax[f])
+            inv = 1.0 / area
+            for py in range(ys, ye + 1):
+                for px in range(xs, xe + 1):
+                    l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
+                    l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
+                    l2 = 1.0 - l0 - l1
+                    if l0 < 0.0 or l1 < 0.0 or l2 < 0.0:
+                        continue
+                    q0, q1, q2 = l0 / z0, l1 / z1, l2 / z2
+                    s = q0 + q1 + q2
+                    depth = 1.0 / s
+                    if depth < depth_out[py, px]:
+                        depth_out[py, px] = depth
+                        face_out[py, px] = f
+                        bary_out[py, px, 0] = q0 / s
+                        bary_out[py, px, 1] = q1 / s
+                        bary_out[py, px, 2] = q2 / s
+
+
+def rasterize_numba(xyz: np.ndarray, faces: np.ndarray, height: int, width: int, near: float = 1e-3):
+    """Visibility of a batch of meshes.
+
+    Args:
+        xyz: (B, V, 3) screen-space vertices (pixel x, pixel y, depth); faces: (F, 3) int.
+    Returns:
+        face_id (B, H, W) int64 (-1 = background), bary (B, H, W, 3) perspective-correct,
+        depth (B, H, W) (inf = background).
+    """
+    B = xyz.shape[0]
+    face_id = np.full((B, height, width), -1, np.int64)
+    bary = np.zeros((B, height, width, 3))
+    depth = np.full((B, height, width), np.inf)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    for b in range(B):
+        _rasterize(xyz[b], faces, height, width, near, face_id[b], bary[b], depth[b])
+    return face_id, bary, depth
+
+
+def rasterize_reference(xyz: torch.Tensor, faces: torch.Tensor, height: int, width: int, near: float = 1e-3):
+    """Pure-PyTorch z-buffer, every pixel against every triangle (small inputs only)."""
+    B = xyz.shape[0]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+    p = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # (P, 2)
+    out_f = torch.full((B, height * width), -1, dtype=torch.int64)
+    out_b = torch.zeros(B, height * width, 3, dtype=torch.float64)
+    out_d = torch.full((B, height * width), float("inf"), dtype=torch.float64)
+    for b in range(B):
+        tri = xyz[b].double()[faces]  # (F, 3, 3)
+        v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
+        area = (v1[:, 0] - v0[:, 0]) * (v2[:, 1] - v0[:, 1]) - (v2[:, 0] - v0[:, 0]) * (v1[:, 1] - v0[:, 1])
+        edge = lambda a, c: (a[None, :, 0] - p[:, None, 0]) * (c[None, :, 1] - p[:, None, 1]) - (c[None, :, 0] - p[:, None, 0]) * (a[None, :, 1] - p[:, None, 1])  # noqa: E731
+        l0 = edge(v1, v2) / area
+        l1 = edge(v2, v0) / area
+        l2 = 1 - l0 - l1
+        ok = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (area != 0) & (tri[:, :, 2] > near).all(-1)
+        q = torch.stack([l0 / v0[:, 2], l1 / v1[:, 2], l2 / v2[:, 2]], -1)
+        depth = torch.where(ok, 1 / q.sum(-1), torch.full_like(l0, float("inf")))
+        best_depth, best = depth.min(dim=1)
+        hit = torch.isfinite(best_depth)
+        out_f[b] = torch.where(hit, best, torch.full_like(best, -1))
+        qb = q[torch.arange(len(p)), best]
+        out_b[b] = torch.where(hit[:, None], qb / qb.sum(-1, keepdim=True), torch.zeros_like(qb))
+        out_d[b] = best_depth
+    return (out_f.reshape(B, height, width), out_b.reshape(B, height, width, 3), out_d.reshape(B, height, width))
+
+
+@numba.njit(parallel=True, cache=True)
+def _splat(xyz, radius, height, width, near, idx_out, depth_out):
+    """K nearest (in depth) points whose disc covers each pixel centre, one image."""
+    N = xyz.shape[0]
+    K = idx_out.shape[2]
+    ymin = np.empty(N, np.int64)
+    ymax = np.empty(N, np.int64)
+    for i in range(N):
+        x, y, z, r = xyz[i, 0], xyz[i, 1], xyz[i, 2], radius[i]
+        if not (z > near and np.isfinite(x) and np.isfinite(y) and r > 0) or y + r < 0 or y - r > height - 1:
+            ymin[i], ymax[i] = 1, 0
+        else:
+            ymin[i] = max(0, int(np.ceil(y - r)))
+            ymax[i] = min(height - 1, int(np.floor(y + r)))
+    n_bands = (height + BAND - 1) // BAND
+    offsets, items = _bin_rows(ymin, ymax, n_bands, BAND)
+    for band in numba.prange(n_bands):
+        r0 = band * BAND
+        r1 = min(r0 + BAND, height) - 1
+        for k in range(offsets[band], offsets[band + 1]):
+            i = items[k]
+            x, y, z, r = xyz[i, 0], xyz[i, 1], xyz[i, 2], radius[i]
+            r2 = r * r
+            xs = max(0, int(np.ceil(x - r)))
+            xe = min(width - 1, int(np.floor(x + r)))
+            for py in range(max(r0, ymin[i]), min(r1, ymax[i]) + 1):
+                for px in range(xs, xe + 1):
+                    d2 = (px - x) * (px - x) + (py - y) * (py - y)
+                    if d2 >= r2 or z >= depth_out[py, px, K - 1]:
+                        continue
+                    j = K - 1  # insertion into the sorted list, nearest first
+                    while j > 0 and depth_out[py, px, j - 1] > z:
+                        depth_out[py, px, j] = depth_out[py, px, j - 1]
+                        idx_out[py, px, j] = idx_out[py, px, j - 1]
+                        j -= 1
+                    depth_out[py, px, j] = z
+                    idx_out[py, px, j] = i
+
+
+def splat_numba(xyz: np.ndarray, radius: np.ndarray, height: int, width: int, K: int, near: float = 1e-3):
+    """Per pixel, the K nearest points (front to back) whose disc of ``radius`` pixels covers it.
+
+    Args:
+        xyz: (B, N, 3) screen-space points; radius: (B, N) pixels.
+    Returns:
+        idx (B, H, W, K) int64 (-1 = empty), depth (B, H, W, K) (inf = empty).
+    """
+    B = xyz.shape[0]
+    idx = np.full((B, height, width, K), -1, np.int64)
+    depth = np.full((B, height, width, K), np.inf)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    radius = np.ascontiguousarray(radius, dtype=np.float64)
+    for b in range(B):
+        _splat(xyz[b], radius[b], height, width, near, idx[b], depth[b])
+    return idx, depth
+
+
+def splat_reference(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int, K: int, near: float = 1e-3):
+    """Pure-PyTorch K-nearest splatting, every pixel against every point (small inputs only)."""
+    B = xyz.shape[0]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+    p = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+    idx_out = torch.full((B, height * width, K), -1, dtype=torch.int64)
+    depth_out = torch.full((B, height * width, K), float("inf"), dtype=torch.float64)
+    for b in range(B):
+        pts = xyz[b].double()
+        d2 = ((p[:, None, :] - pts[None, :, :2]) ** 2).sum(-1)
+        ok = (d2 < radius[b].double()[None] ** 2) & (pts[None, :, 2] > near)
+        depth = torch.where(ok, pts[None, :, 2].expand_as(d2), torch.full_like(d2, float("inf")))
+        k = min(K, depth.shape[1])
+        best_depth, best = torch.topk(depth, k, dim=1, largest=False)
+        hit = torch.isfinite(best_depth)
+        idx_out[b, :, :k] = torch.where(hit, best, torch.full_like(best, -1))
+        depth_out[b, :, :k] = best_depth
+    return idx_out.reshape(B, height, width, K), depth_out.reshape(B, height, width, K)

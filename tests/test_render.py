@@ -1,0 +1,245 @@
+"""Renderer: cameras, mesh visibility vs ray casting and the pure-torch reference, gradients,
+point splatting vs reference and an analytic sphere, shading, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from headforge.render import kernels, mesh, points, shading
+from headforge.render.camera import Cameras, PinholeCamera, look_at_head
+from headforge.render.raycast import raycast
+
+
+def _cams(res=64, distance=0.5, yaw=0.0, dtype=torch.float64, B=1):
+    return Cameras.from_pinhole([look_at_head(res, res, distance=distance, yaw_deg=yaw + 7 * i) for i in range(B)], dtype=dtype)
+
+
+def _sphere(subdivisions=3, radius=0.1):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return torch.tensor(s.vertices)[None], torch.tensor(s.faces)
+
+
+# ---- cameras -------------------------------------------------------------------------------
+def test_camera_projection_matches_numpy_and_converters_round_trip():
+    pin = look_at_head(96, 80, distance=0.7, yaw_deg=20, pitch_deg=-5)
+    cams = Cameras.from_pinhole([pin], dtype=torch.float64)
+    pts = torch.randn(1, 50, 3, dtype=torch.float64) * 0.1
+    np.testing.assert_allclose(cams.project(pts)[0, :, :2].numpy(), pin.project(pts[0].numpy()), atol=1e-9)
+    back = Cameras.from_opengl_c2w(cams.to_opengl_c2w(), cams.K, 96, 80)
+    torch.testing.assert_close(back.R, cams.R)
+    torch.testing.assert_close(back.t, cams.t)
+    again = Cameras.from_nerf_transforms(cams.to_nerf_transforms())
+    torch.testing.assert_close(again.project(pts), cams.project(pts))
+    c2w = cams.to_opengl_c2w()[0]
+    # OpenGL camera looks down its -z axis: toward the head at the origin
+    toward = -c2w[:3, 2]
+    torch.testing.assert_close(toward, -c2w[:3, 3] / c2w[:3, 3].norm())
+
+
+def test_bad_cameras():
+    with pytest.raises(ValueError, match="image size must be positive"):
+        Cameras(torch.eye(3)[None], torch.eye(3)[None], torch.zeros(1, 3), 0, 10)
+    with pytest.raises(ValueError, match="Cameras need"):
+        Cameras(torch.eye(3), torch.eye(3)[None], torch.zeros(1, 3), 10, 10)
+
+
+# ---- mesh visibility -----------------------------------------------------------------------
+def test_rasterizer_matches_ray_casting_on_the_head(open_head):
+    verts = open_head(jaw_pose=torch.tensor([[0.15, 0, 0]])).vertices.double()
+    for yaw in (0.0, 35.0):
+        pin = look_at_head(160, 160, distance=0.6, yaw_deg=yaw)
+        frags = mesh.rasterize(Cameras.from_pinhole([pin], torch.float64), verts, open_head.faces)
+        hits = raycast(verts[0].numpy(), open_head.faces.numpy(), pin)
+        covered = hits.mask | frags.mask[0].numpy()
+        agreement = (hits.face_id == frags.face_id[0].numpy())[covered].mean()
+        assert agreement >= 0.995, agreement
+
+
+def test_numba_rasterizer_equals_torch_reference():
+    v, f = _sphere(2)
+    extra = torch.tensor([[[-0.05, -0.05, 0.05], [0.08, -0.02, 0.12], [0.0, 0.09, 0.02]]], dtype=torch.float64)
+    v = torch.cat([v, extra], 1)  # a triangle that cuts through the sphere
+    f = torch.cat([f, torch.tensor([[v.shape[1] - 3, v.shape[1] - 2, v.shape[1] - 1]])])
+    cams = _cams(48, B=2)
+    xyz = cams.project(v.expand(2, -1, -1))
+    ref = kernels.rasterize_reference(xyz, f, 48, 48)
+    fast = kernels.rasterize_numba(xyz.numpy(), f.numpy(), 48, 48)
+    same = ref[0].numpy() == fast[0]
+    assert same.mean() > 0.998  # only exact ties on shared edges may differ
+    both = (ref[0].numpy() >= 0) & (fast[0] >= 0)
+    np.testing.assert_allclose(ref[2].numpy()[both], fast[2][both], atol=1e-9)
+
+
+def test_differentiable_barycentrics_equal_the_rasterizer():
+    v, f = _sphere(3)
+    cams = _cams(64)
+    frags = mesh.rasterize(cams, v, f)
+    torch.testing.assert_close(mesh.barycentrics(frags, cams, v, f), frags.bary, atol=1e-9, rtol=0)
+
+
+def test_interpolation_gradcheck():
+    v, f = _sphere(1)
+    cams = _cams(24)
+    frags = mesh.rasterize(cams, v, f)
+    attr = torch.randn(v.shape[1], 2, dtype=torch.float64)
+
+    def render(verts, attributes):
+        bary = mesh.barycentrics(frags, cams, verts, f)
+        return mesh.interpolate(attributes, frags, f, bary)
+
+    assert torch.autograd.gradcheck(render, (v.clone().requires_grad_(), attr.requires_grad_()), eps=1e-7, atol=1e-5)
+
+
+def test_per_corner_attributes_and_texture():
+    v, f = _sphere(2)
+    cams = _cams(48)
+    frags = mesh.rasterize(cams, v, f)
+    uv_corner = torch.rand(f.shape[0], 3, 2, dtype=torch.float64)
+    uv = mesh.interpolate(uv_corner, frags, f, per_corner=True)
+    # per-corner with identical corners equals per-vertex
+    per_vertex = torch.rand(v.shape[1], 2, dtype=torch.float64)
+    torch.testing.assert_close(mesh.interpolate(per_vertex[f], frags, f, per_corner=True),
+                               mesh.interpolate(per_vertex, frags, f))
+    # a linear ramp texture returns the u coordinate (bilinear is exact on linear data)
+    ramp = torch.linspace(0, 1, 64, dtype=torch.float64)
+    tex = ((torch.arange(64, dtype=torch.float64) + 0.5) / 64)[None, None, :, None].expand(1, 64, 64, 1)
+    out = mesh.texture(uv, tex, frags.mask)
+    inside = frags.mask & (uv[..., 0] > 1 / 64) & (uv[..., 0] < 1 - 1 / 64)
+    torch.testing.assert_close(out[..., 0][inside], uv[..., 0][inside], atol=1e-6, rtol=0)
+    assert ramp.numel() == 64
+
+
+def test_antialias_silhouette_gradient_matches_finite_differences():
+    # one large triangle in front of the camera, edges at non-integer positions
+    v = torch.tensor([[[-0.031, -0.027, 0.0], [0.036, -0.019, 0.0], [0.004, 0.033, 0.0]]], dtype=torch.float64)
+    f = torch.tensor([[0, 1, 2]])
+    cams = _cams(32)
+    frags = mesh.rasterize(cams, v, f)
+    weights = torch.rand(1, 32, 32, 1, dtype=torch.float64)
+
+    def soft_mask(verts):
+        m = frags.mask[..., None].to(verts.dtype)
+        return (mesh.antialias(m, frags, cams, verts, f) * weights).sum()
+
+    verts = v.clone().requires_grad_()
+    soft_mask(verts).backward()
+    assert verts.grad.abs().sum() > 0
+    assert torch.autograd.gradcheck(soft_mask, (v.clone().requires_grad_(),), eps=1e-7, atol=1e-5)
+    # area check: the antialiased mask sums to about the projected triangle area
+    xy = cams.project(v)[0, :, :2]
+    area = 0.5 * abs(float((xy[1, 0] - xy[0, 0]) * (xy[2, 1] - xy[0, 1]) - (xy[2, 0] - xy[0, 0]) * (xy[1, 1] - xy[0, 1])))
+    aa_sum = mesh.antialias(frags.mask[..., None].double(), frags, cams, v, f).sum().item()
+    assert abs(aa_sum - area) < abs(frags.mask.sum().item() - area) + 1e-9
+    assert abs(aa_sum - area) / area < 0.03
+
+
+def test_mesh_bad_input_is_handled():
+    v, f = _sphere(1)
+    cams = _cams(32)
+    empty = mesh.rasterize(cams, v, torch.zeros(0, 3, dtype=torch.long))
+    assert not empty.mask.any()
+    nan = v.clone()
+    nan[0, :5] = float("nan")
+    frags = mesh.rasterize(cams, nan, f)
+    assert frags.mask.any() and torch.isfinite(frags.depth[frags.mask]).all()
+    behind = v.clone()
+    behind[..., 2] += 0.6  # the whole mesh behind the camera (camera at z = 0.5 looking to -z)
+    assert not mesh.rasterize(cams, behind, f).mask.any()
+    degenerate = torch.zeros(1, 3, 3, dtype=torch.float64)
+    assert not mesh.rasterize(cams, degenerate, torch.tensor([[0, 1, 2]])).mask.any()
+    with pytest.raises(ValueError, match="vertices must be"):
+        mesh.rasterize(cams, v[0], f)
+    with pytest.raises(ValueError, match="faces index outside"):
+        mesh.rasterize(cams, v, f + 1000)
+    with pytest.raises(ValueError, match="1 meshes but 2 cameras"):
+        mesh.rasterize(_cams(32, B=2), v, f)
+    # gradients stay finite with NaN-free degenerate triangles in view
+    vv = v.clone().requires_grad_()
+    frags = mesh.rasterize(cams, vv, f)
+    mesh.interpolate(vv, frags, f, mesh.barycentrics(frags, cams, vv, f)).sum().backward()
+    assert torch.isfinite(vv.grad).all()
+
+
+# ---- points --------------------------------------------------------------------------------
+def test_numba_splat_equals_torch_reference():
+    gen = torch.Generator().manual_seed(0)
+    pts = (torch.rand(2, 400, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.15
+    cams = _cams(40, B=2)
+    xyz = cams.project(pts)
+    radius = 0.5 + 2 * torch.rand(2, 400, generator=gen, dtype=torch.float64)
+    ref_idx, ref_depth = kernels.splat_reference(xyz, radius, 40, 40, 5)
+    idx, depth = kernels.splat_numba(xyz.numpy(), radius.numpy(), 40, 40, 5)
+    np.testing.assert_array_equal(ref_idx.numpy(), idx)
+    np.testing.assert_allclose(ref_depth.numpy(), depth)
+
+
+def test_point_sampled_sphere_matches_the_analytic_disc():
+    R, d, res = 0.1, 0.5, 128
+    cams = _cams(res, distance=d)
+    pts, _ = trimesh.sample.sample_surface_even(trimesh.creation.icosphere(5, radius=R), 60000, seed=0)
+    pts = torch.tensor(pts)[None]
+    image = points.splat(cams, pts, torch.ones(1, pts.shape[1], 1, dtype=torch.float64), radius=1.0, K=8)
+    covered = (image.mask[0] > 0.5).numpy()
+    f = cams.K[0, 0, 0].item()
+    radius_px = f * R / math.sqrt(d * d - R * R)  # exact silhouette radius of a sphere on the axis
+    ys, xs = np.mgrid[0:res, 0:res]
+    c = (res - 1) / 2
+    dist = np.hypot(xs - c, ys - c)
+    disc = dist < radius_px
+    mismatch = covered != disc
+    assert np.abs(dist[mismatch] - radius_px).max() <= 1.0  # disagreements only within 1 px of the edge
+    assert abs(math.sqrt(covered.sum() / math.pi) - radius_px) < 1.0
+
+
+def test_point_compositing_gradcheck():
+    gen = torch.Generator().manual_seed(1)
+    pts = (torch.rand(1, 30, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.04
+    feats = torch.rand(1, 30, 2, generator=gen, dtype=torch.float64)
+    radius = 2.5 + torch.rand(30, generator=gen, dtype=torch.float64)
+    cams = _cams(16)
+
+    def render(p, c, r):
+        out = points.splat(cams, p, c, r, K=4)
+        return out.features, out.mask
+
+    assert torch.autograd.gradcheck(render, (pts.requires_grad_(), feats.requires_grad_(), radius.requires_grad_()),
+                                    eps=1e-7, atol=1e-5)
+
+
+def test_point_max_weight_and_front_to_back_order():
+    cams = _cams(15)  # odd size: the optical axis hits pixel (7, 7) at its centre
+    centre = cams.pinhole().centre
+    # two points on the optical axis: the nearer one hides most of the farther one
+    p = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.05]]], dtype=torch.float64)
+    out = points.splat(cams, p, torch.tensor([[[1.0], [0.0]]], dtype=torch.float64), radius=3.0, K=2)
+    assert out.max_weight[0, 1] == pytest.approx(1.0)  # the near point (z closer to the camera)
+    # the far point shows only where the near disc thins out: weight (1 - a) a <= 1/4
+    assert 0.2 < out.max_weight[0, 0] <= 0.25
+    assert out.fragments.idx[0, 7, 7, 0].item() == 1 and centre[2] > 0
+
+
+def test_points_bad_input():
+    cams = _cams(16)
+    behind = torch.tensor([[[0.0, 0.0, 0.9]]], dtype=torch.float64)  # behind the camera at z = 0.5
+    out = points.splat(cams, behind, torch.ones(1, 1, 3, dtype=torch.float64), 2.0)
+    assert out.mask.sum() == 0
+    nan = torch.full((1, 2, 3), float("nan"), dtype=torch.float64)
+    assert points.splat(cams, nan, torch.ones(1, 2, 3, dtype=torch.float64), 2.0).mask.sum() == 0
+    with pytest.raises(ValueError, match="radius must be"):
+        points.splat(cams, behind, torch.ones(1, 1, 3), torch.ones(3))
+    with pytest.raises(ValueError, match="features must be"):
+        points.splat(cams, behind, torch.ones(1, 2, 3), 2.0)
+
+
+# ---- shading ------------------------------------------------------------------------------
+def test_constant_sh_gives_uniform_irradiance_and_matches_lambert_first_band():
+    n = torch.nn.functional.normalize(torch.randn(100, 3, dtype=torch.float64), dim=-1)
+    torch.testing.assert_close(shading.sh_shading(n, shading.constant_sh(0.7).double()),
+                               torch.full((100, 3), 0.7, dtype=torch.float64))
+    lit = shading.lambert(n, torch.ones(100, 3, dtype=torch.float64), (0.0, 0.0, 1.0), ambient=0.0)
+    torch.testing.assert_close(lit[:, 0], n[:, 2].clamp(min=0))
