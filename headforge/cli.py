@@ -18,6 +18,8 @@ app = typer.Typer(help="headforge: animatable 3D head avatars from phone videos 
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 model_app = typer.Typer(help="Parametric head models: build, inspect, fit to a photo.", no_args_is_help=True)
 app.add_typer(model_app, name="model")
+render_app = typer.Typer(help="Render head models and avatars to PNG/MP4.", no_args_is_help=True)
+app.add_typer(render_app, name="render")
 console = Console(stderr=True)
 
 MODEL_OPT = typer.Option("open-head", "--model", "-m", help="open-head (built in) or flame (your own files)")
@@ -113,6 +115,36 @@ def model_fit_image(image: Path = typer.Argument(..., help="a photo with one fac
     summary = {"image": str(image), "output": str(output), "landmark_median_px": round(fit.median_px, 3),
                "landmark_median_px_inner": round(fit.median_px_inner, 3)}
     print(json.dumps(summary))
+
+
+@render_app.command("turntable")
+def render_turntable(output: Path = typer.Option(..., "-o", "--output", help="MP4 to write (a PNG of frame 0 beside it)"),
+                     model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
+                     frames: int = typer.Option(60, help="number of frames (one full turn)"),
+                     resolution: int = typer.Option(256, help="height of each panel in pixels"),
+                     points: int = typer.Option(100_000, help="surface points for the point panel"),
+                     fps: float = typer.Option(30.0)) -> None:
+    """The head model turning: mesh path (shaded) | point path (coloured by normal)."""
+    from headforge.render.io import write_mp4, write_png
+    from headforge.render.turntable import turntable_frames
+
+    if frames < 1 or resolution < 16 or points < 1:
+        raise HeadforgeError("need --frames >= 1, --resolution >= 16 and --points >= 1")
+    head = _load_model(model, flame_dir)
+    start = time.perf_counter()
+    first = {}
+
+    def frames_keeping_first():
+        for i, frame in enumerate(turntable_frames(head, frames, resolution, points)):
+            if i == 0:
+                first["frame"] = frame
+            yield frame
+
+    write_mp4(output, frames_keeping_first(), fps=fps, total=frames, description=f"rendering {frames} frames")
+    png = write_png(output.with_suffix(".png"), first["frame"])
+    seconds = time.perf_counter() - start
+    print(json.dumps({"output": str(output), "preview": str(png), "frames": frames,
+                      "seconds": round(seconds, 2), "frames_per_second": round(frames / seconds, 2)}))
 
 
 @app.command("demo")

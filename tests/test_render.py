@@ -158,11 +158,12 @@ def test_mesh_bad_input_is_handled():
         mesh.rasterize(cams, v, f + 1000)
     with pytest.raises(ValueError, match="1 meshes but 2 cameras"):
         mesh.rasterize(_cams(32, B=2), v, f)
-    # gradients stay finite with NaN-free degenerate triangles in view
-    vv = v.clone().requires_grad_()
+    # NaN vertices: no NaN gradients anywhere (they are invisible, their gradient is zero)
+    vv = nan.clone().requires_grad_()
     frags = mesh.rasterize(cams, vv, f)
-    mesh.interpolate(vv, frags, f, mesh.barycentrics(frags, cams, vv, f)).sum().backward()
-    assert torch.isfinite(vv.grad).all()
+    image = mesh.interpolate(torch.ones(v.shape[1], 1, dtype=torch.float64), frags, f, mesh.barycentrics(frags, cams, vv, f))
+    mesh.antialias(torch.cat([image, frags.mask[..., None].double()], -1), frags, cams, vv, f).sum().backward()
+    assert torch.isfinite(vv.grad).all() and vv.grad[0, :5].abs().sum() == 0
 
 
 # ---- points --------------------------------------------------------------------------------
@@ -230,6 +231,11 @@ def test_points_bad_input():
     assert out.mask.sum() == 0
     nan = torch.full((1, 2, 3), float("nan"), dtype=torch.float64)
     assert points.splat(cams, nan, torch.ones(1, 2, 3, dtype=torch.float64), 2.0).mask.sum() == 0
+    mixed = (torch.randn(1, 20, 3, dtype=torch.float64) * 0.03)
+    mixed[0, 0] = float("nan")
+    mixed.requires_grad_()
+    points.splat(cams, mixed, torch.ones(1, 20, 3, dtype=torch.float64), 2.0).features.sum().backward()
+    assert torch.isfinite(mixed.grad).all()
     with pytest.raises(ValueError, match="radius must be"):
         points.splat(cams, behind, torch.ones(1, 1, 3), torch.ones(3))
     with pytest.raises(ValueError, match="features must be"):

@@ -109,6 +109,13 @@ class Cameras:
         """(B, N, 3) world points -> (B, N, 3) camera coordinates (z forward, metres)."""
         return points @ self.R.transpose(1, 2).to(points.dtype) + self.t[:, None].to(points.dtype)
 
+    def project_finite(self, points: torch.Tensor) -> torch.Tensor:
+        """:meth:`project` with non-finite results set to 0, for differentiable stages: NaN
+        points are invisible anyway, and a NaN in a masked-out branch would still poison
+        gradients (0 * NaN = NaN)."""
+        xyz = self.project(points)
+        return torch.where(torch.isfinite(xyz), xyz, torch.zeros_like(xyz))
+
     def project(self, points: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) world points -> (B, N, 3): pixel x, pixel y, camera depth z."""
         cam = self.world_to_camera(points)

@@ -84,7 +84,7 @@ def barycentrics(fragments: Fragments, cameras: Cameras, vertices: torch.Tensor,
     Equal to ``fragments.bary`` in value; zero on the background.
     """
     B, H, W = fragments.face_id.shape
-    xyz = cameras.project(vertices)  # (B, V, 3)
+    xyz = cameras.project_finite(vertices)  # (B, V, 3)
     fid = fragments.face_id.clamp(min=0)
     corner = faces[fid]  # (B, H, W, 3)
     pts = torch.gather(xyz, 1, corner.reshape(B, -1, 1).expand(-1, -1, 3).reshape(B, -1, 3)).reshape(B, H, W, 3, 3)
@@ -152,7 +152,7 @@ def antialias(image: torch.Tensor, fragments: Fragments, cameras: Cameras, verti
         image: (B, H, W, C) shaded image (include the mask as a channel to antialias it too).
     """
     B, H, W, C = image.shape
-    xyz = cameras.project(vertices)
+    xyz = cameras.project_finite(vertices)
     grid = _pixel_grid(fragments)
     delta = torch.zeros_like(image)
     fid = fragments.face_id

@@ -65,7 +65,7 @@ def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius
     if K < 1:
         raise ValueError(f"K must be >= 1, got {K}")
     H, W = cameras.height, cameras.width
-    xyz = cameras.project(points)
+    xyz = cameras.project_finite(points)  # NaN points: invisible (the kernel skips z <= near)
     r = _radius(radius, B, N, xyz)
     idx_np, depth_np = splat_numba(xyz.detach().double().cpu().numpy(), r.detach().double().cpu().numpy(), H, W, K, near)
     idx = torch.from_numpy(idx_np).to(points.device)
