@@ -18,22 +18,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import time
 
 import torch
-
-
-def timed(fn, repeats: int) -> float:
-    for _ in range(3):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(1000 * (time.perf_counter() - start))
-    return statistics.median(times)
+from timing import timed
 
 
 def main() -> None:
@@ -73,8 +62,8 @@ def main() -> None:
         (out.vertices.sum() + out.landmarks.sum()).backward()
 
     log(f"timing forward passes (batch {B}, {args.threads} threads, median of {args.repeats})")
-    fwd = timed(forward, args.repeats)
-    fwd_bwd = timed(forward_backward, args.repeats)
+    fwd = timed(forward, args.repeats, warmup=3)
+    fwd_bwd = timed(forward_backward, args.repeats, warmup=3)
     compiled_ms = compile_seconds = None
     if args.compile:
         log("compiling the model with torch.compile (one-time cost)")
@@ -91,7 +80,7 @@ def main() -> None:
             with torch.no_grad():
                 compiled(**inputs)
 
-        compiled_ms = timed(forward_compiled, args.repeats)
+        compiled_ms = timed(forward_compiled, args.repeats, warmup=3)
     log("evaluating the landmark embedding on held-out renders")
     lmk = evaluate_embedding(data)
     result = {"model": "open-head", "vertices": model.num_vertices, "threads": args.threads,

@@ -20,23 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import statistics
 import sys
 import time
 
 import numpy as np
 import torch
+from timing import timed
 import trimesh
-
-
-def timed(fn, repeats: int) -> float:
-    fn()  # JIT warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(1000 * (time.perf_counter() - start))
-    return statistics.median(times)
 
 
 def mesh_case(vertices: torch.Tensor, faces: torch.Tensor, res: int):

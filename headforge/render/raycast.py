@@ -65,13 +65,13 @@ def interpolate(hits: RayHits, faces: np.ndarray, attribute: np.ndarray) -> np.n
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3)."""
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_n)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    """Area-weighted unit vertex normals (V, 3), numpy in and out."""
+    import torch
+
+    from headforge.head.topology import vertex_normals as torch_vertex_normals
+
+    return torch_vertex_normals(torch.from_numpy(np.asarray(vertices, np.float64)),
+                                torch.from_numpy(np.asarray(faces, np.int64))).numpy()
 
 
 def shade_lambert(hits: RayHits, faces: np.ndarray, vertices: np.ndarray, albedo: np.ndarray,
