@@ -147,6 +147,33 @@ def render_turntable(output: Path = typer.Option(..., "-o", "--output", help="MP
                       "seconds": round(seconds, 2), "frames_per_second": round(frames / seconds, 2)}))
 
 
+@app.command("track")
+def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mov, ...)"),
+          output: Path = typer.Option(..., "-o", "--output", help="dataset folder to write"),
+          model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
+          resolution: int = typer.Option(512, help="crop size in pixels"),
+          every: int = typer.Option(1, help="keep every N-th frame"),
+          max_frames: Optional[int] = typer.Option(None, help="stop after this many kept frames"),
+          val_fraction: float = typer.Option(0.2, help="last fraction of frames held out for validation"),
+          preset: str = typer.Option("quick", help="quick (CPU) or paper"),
+          overlay: bool = typer.Option(True, help="write overlay.mp4 (landmarks + model wireframe)")) -> None:
+    """Preprocess a video (crops, masks, landmarks) and track the head model in it."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from headforge.track.pipeline import TrackOptions, track_video
+
+    options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay)
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bars:
+        def factory(description, total):
+            task = bars.add_task(description, total=total)
+            return lambda: bars.advance(task)
+
+        metrics = track_video(video, output, options, log=_progress, progress_factory=factory)
+    console.print(f"dataset written to {output}/ (dataset.json, frames/, masks/, overlay.mp4, metrics.json)")
+    print(json.dumps(metrics))
+
+
 @app.command("demo")
 def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder")) -> None:
     """The main job on the embedded default: build open-head, fit it to a bundled photo,
@@ -177,6 +204,10 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
 
 
 def main() -> None:
+    import warnings
+
+    # mediapipe 0.10.14 calls a protobuf API that warns on every start; nothing for users to act on
+    warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype")
     os.environ.setdefault("GLOG_minloglevel", "2")
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     try:

@@ -150,3 +150,14 @@ def test_folded_joint_bases_equal_regressed_joints(tiny_data):
     shape, expr = torch.randn(3, 4, dtype=torch.float64), torch.randn(3, 3, dtype=torch.float64)
     out = model(shape=shape, expression=expr)
     torch.testing.assert_close(out.joints, lbs.regress_joints(model.j_regressor, out.shaped))
+
+
+def test_landmarks_only_model_matches_the_full_model(tiny_data):
+    full = HeadModel(tiny_data)
+    small = HeadModel(tiny_data, landmarks_only=True)
+    assert small.num_vertices < full.num_vertices
+    kwargs = dict(shape=torch.randn(3, 4), expression=torch.randn(3, 3), root_pose=0.2 * torch.randn(3, 3),
+                  neck_pose=0.2 * torch.randn(3, 3), jaw_pose=0.2 * torch.randn(3, 3), translation=torch.randn(3, 3))
+    a, b = full(**kwargs), small(**kwargs)
+    torch.testing.assert_close(b.landmarks, a.landmarks, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(b.joints, a.joints, atol=1e-6, rtol=1e-5)

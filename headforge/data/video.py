@@ -15,28 +15,71 @@ def is_video(path: str | Path) -> bool:
     return Path(path).suffix.lower() in VIDEO_SUFFIXES
 
 
-def read_frame(path: str | Path, index: int = 0) -> np.ndarray:
-    """Frame ``index`` (0-based, decode order) of a video as (H, W, 3) uint8 RGB, upright."""
-    import av
-
-    path = Path(path)
+def _check_file(path: Path) -> None:
     if not path.is_file():
         raise HeadforgeError(f"video not found: {path}")
     if path.stat().st_size == 0:
         raise HeadforgeError(f"video is empty (0 bytes): {path}")
-    if index < 0:
-        raise HeadforgeError(f"frame index must be >= 0, got {index}")
+
+
+def _upright(frame) -> np.ndarray:
+    image = frame.to_ndarray(format="rgb24")
+    rotation = int(getattr(frame, "rotation", 0) or 0)
+    return np.ascontiguousarray(np.rot90(image, k=(rotation // 90) % 4)) if rotation else image
+
+
+def video_info(path: str | Path) -> dict:
+    """fps, frame count (container's estimate, may be 0) and size of the first video stream."""
+    import av
+
+    path = Path(path)
+    _check_file(path)
     try:
         with av.open(str(path)) as container:
             if not container.streams.video:
                 raise HeadforgeError(f"no video stream in {path}")
-            for i, frame in enumerate(container.decode(video=0)):
-                if i == index:
-                    image = frame.to_ndarray(format="rgb24")
-                    rotation = int(getattr(frame, "rotation", 0) or 0)
-                    return np.ascontiguousarray(np.rot90(image, k=(rotation // 90) % 4)) if rotation else image
+            stream = container.streams.video[0]
+            fps = float(stream.average_rate or stream.base_rate or 30)
+            return {"fps": fps, "frames": int(stream.frames or 0), "width": stream.codec_context.width,
+                    "height": stream.codec_context.height}
     except HeadforgeError:
         raise
-    except Exception as exc:  # PyAV raises several error types for broken files
+    except Exception as exc:
         raise HeadforgeError(f"cannot decode video {path}: {exc}") from None
+
+
+def iter_frames(path: str | Path, every: int = 1, max_frames: int | None = None):
+    """Yield (frame index, (H, W, 3) uint8 RGB upright) for every ``every``-th frame."""
+    import av
+
+    path = Path(path)
+    _check_file(path)
+    if every < 1:
+        raise HeadforgeError(f"--every must be >= 1, got {every}")
+    count = 0
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise HeadforgeError(f"no video stream in {path}")
+            container.streams.video[0].thread_type = "AUTO"
+            for i, frame in enumerate(container.decode(video=0)):
+                if i % every:
+                    continue
+                if max_frames is not None and count >= max_frames:
+                    return
+                yield i, _upright(frame)
+                count += 1
+    except HeadforgeError:
+        raise
+    except Exception as exc:
+        raise HeadforgeError(f"cannot decode video {path}: {exc}") from None
+
+
+def read_frame(path: str | Path, index: int = 0) -> np.ndarray:
+    """Frame ``index`` (0-based, decode order) of a video as (H, W, 3) uint8 RGB, upright."""
+    if index < 0:
+        raise HeadforgeError(f"frame index must be >= 0, got {index}")
+    for i, image in iter_frames(path):
+        if i == index:
+            return image
     raise HeadforgeError(f"{path} has fewer than {index + 1} frames")

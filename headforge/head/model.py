@@ -125,6 +125,29 @@ class HeadModelData:
         return data
 
 
+def _landmark_subset(data: HeadModelData) -> HeadModelData:
+    """The data restricted to the landmark triangles, joints regressed as before."""
+    from dataclasses import replace
+
+    if data.landmark_faces is None:
+        raise HeadforgeError(f"head model {data.name!r} has no landmark embedding")
+    tri = data.faces[data.landmark_faces]  # (L, 3)
+    keep = np.unique(tri)
+    remap = np.full(len(data.v_template), -1)
+    remap[keep] = np.arange(len(keep))
+    # Joints come from the full mesh: fold them into a regressor on the kept vertices by
+    # solving for the same joint positions at the template and along every basis.
+    full_j = data.j_regressor @ data.v_template
+    sub = replace(data, v_template=data.v_template[keep], faces=remap[tri], uv_faces=data.uv_faces[data.landmark_faces],
+                  shapedirs=data.shapedirs[keep], exprdirs=data.exprdirs[keep],
+                  posedirs=None if data.posedirs is None else data.posedirs[keep], weights=data.weights[keep],
+                  j_regressor=np.zeros((len(data.parents), len(keep))), landmark_faces=np.arange(len(tri)),
+                  regions={}, meta={**data.meta, "landmarks_only": True})
+    sub.meta["_joint_bases"] = (full_j, np.einsum("jv,vck->jck", data.j_regressor,
+                                                  np.concatenate([data.shapedirs, data.exprdirs], axis=2)))
+    return sub
+
+
 class HeadOutput(NamedTuple):
     """Result of :meth:`HeadModel.forward` (all in metres, canonical space + translation)."""
 
@@ -144,9 +167,14 @@ class HeadModel(torch.nn.Module):
     """
 
     def __init__(self, data: HeadModelData, joint_limits: bool = False,
-                 use_pose_correctives: bool = True):
+                 use_pose_correctives: bool = True, landmarks_only: bool = False):
+        """``landmarks_only=True`` keeps only the vertices of the landmark triangles (a few
+        hundred): ``vertices`` then holds those, ``faces`` the landmark triangles re-indexed,
+        and ``landmarks`` are unchanged -- a cheap forward for landmark fitting."""
         super().__init__()
         data.validate()
+        if landmarks_only:
+            data = _landmark_subset(data)
         self.name = data.name
         self.expression_names = list(data.expression_names)
         self.joint_names = list(data.joint_names)
@@ -168,9 +196,14 @@ class HeadModel(torch.nn.Module):
         self.register_buffer("j_regressor", f32(data.j_regressor))
         # Joints are linear in the blend coefficients: fold the regressor into the bases.
         J = len(data.parents)
-        self.register_buffer("j_template", f32(data.j_regressor @ data.v_template))
-        self.register_buffer("j_blenddirs", f32(np.einsum("jv,vck->kjc", data.j_regressor,
-                                                          dirs.reshape(V, 3, -1)).reshape(-1, J * 3)))
+        if "_joint_bases" in data.meta:  # a landmark subset: joints of the full mesh
+            j_template, j_dirs = data.meta.pop("_joint_bases")
+            self.meta.pop("_joint_bases", None)
+        else:
+            j_template = data.j_regressor @ data.v_template
+            j_dirs = np.einsum("jv,vck->jck", data.j_regressor, dirs.reshape(V, 3, -1))
+        self.register_buffer("j_template", f32(j_template))
+        self.register_buffer("j_blenddirs", f32(j_dirs.transpose(2, 0, 1).reshape(-1, J * 3)))
         self.register_buffer("weights", f32(data.weights))
         self.register_buffer("parents", i64(data.parents))
         self.parent_list = tuple(int(p) for p in data.parents)  # static tree for the forward pass

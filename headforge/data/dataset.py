@@ -1,0 +1,124 @@
+"""The headforge dataset format written by ``headforge track`` (and later ``headforge synth``).
+
+    DATASET/
+      dataset.json          format/version, model, resolution, fps, intrinsics K (crop pixels,
+                            OpenCV), per-frame records {index, source_frame, valid, split,
+                            image, mask, crop: [cx, cy, size] in source pixels}
+      tracking.safetensors  shape (1, S); per frame (T, ...): expression, root_pose, neck_pose,
+                            jaw_pose, eye_left_pose, eye_right_pose, translation (metres, camera
+                            frame), landmarks (T, 478, 2) MediaPipe in crop pixels, valid (T,)
+      frames/00000.png      RGB crops, resolution^2
+      masks/00000.png       foreground masks (selfie segmentation), uint8
+      metrics.json, overlay.mp4, transforms.json (NeRF-style, head-centric cameras)
+
+The camera is fixed at the origin (OpenCV axes); the head moves. A head vertex x (canonical,
+posed by the head model with these parameters) lands at diag(1, -1, -1) x + translation.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file
+
+from headforge.errors import HeadforgeError
+
+FORMAT = "headforge-dataset"
+VERSION = 1
+FLIP = np.diag([1.0, -1.0, -1.0])
+
+
+def read_meta(root: str | Path) -> dict:
+    root = Path(root)
+    path = root / "dataset.json"
+    if not path.is_file():
+        partial = root.with_name(root.name + ".partial")
+        hint = f" (an unfinished run is in {partial}: re-run the command to resume)" if partial.exists() else ""
+        raise HeadforgeError(f"{root} is not a headforge dataset: dataset.json missing{hint}")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise HeadforgeError(f"{path} is not valid JSON: {exc}") from None
+    if meta.get("format") != FORMAT:
+        raise HeadforgeError(f"{path} is not a headforge dataset (format {meta.get('format')!r})")
+    if meta.get("version") != VERSION:
+        raise HeadforgeError(f"{root} was written by dataset version {meta.get('version')}, this headforge reads "
+                             f"version {VERSION}: re-run headforge track")
+    return meta
+
+
+class HeadDataset(torch.utils.data.Dataset):
+    """Frames of a headforge dataset as dicts of tensors.
+
+    Item: image (H, W, 3) float in [0, 1], mask (H, W) float, landmarks (478, 2), the frame's
+    head-model parameters (expression, *_pose, translation) and ``shape`` (S,), ``index``.
+    """
+
+    def __init__(self, root: str | Path, split: str = "train", valid_only: bool = True):
+        if split not in ("train", "val", "all"):
+            raise HeadforgeError(f"split must be train, val or all, got {split!r}")
+        self.root = Path(root)
+        self.meta = read_meta(self.root)
+        tracking_path = self.root / "tracking.safetensors"
+        if not tracking_path.is_file():
+            raise HeadforgeError(f"{tracking_path} is missing")
+        self.tracking = load_file(str(tracking_path))
+        self.K = torch.tensor(self.meta["intrinsics"], dtype=torch.float32)
+        self.records = [r for r in self.meta["frames"]
+                        if (split == "all" or r["split"] == split) and (r["valid"] or not valid_only)]
+        for r in self.records[:1] + self.records[-1:]:
+            for key in ("image", "mask"):
+                if not (self.root / r[key]).is_file():
+                    raise HeadforgeError(f"{self.root / r[key]} is missing")
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, i: int) -> dict:
+        from PIL import Image
+
+        r = self.records[i]
+        t = r["index"]
+        image = torch.from_numpy(np.asarray(Image.open(self.root / r["image"]).convert("RGB"), np.float32) / 255)
+        mask = torch.from_numpy(np.asarray(Image.open(self.root / r["mask"]), np.float32) / 255)
+        item = {"index": t, "image": image, "mask": mask, "landmarks": self.tracking["landmarks"][t],
+                "shape": self.tracking["shape"][0]}
+        for key in ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation"):
+            item[key] = self.tracking[key][t]
+        return item
+
+
+def head_to_camera(root_pose: np.ndarray, translation: np.ndarray, root_joint: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) rigid transforms canonical head space -> camera (OpenCV), from the root
+    rotation (about the rest root joint ``root_joint`` (3,)) and translation."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(root_pose).as_matrix()  # (T, 3, 3)
+    out = np.zeros((len(R), 4, 4))
+    out[:, :3, :3] = FLIP @ R
+    out[:, :3, 3] = (FLIP @ (root_joint - R @ root_joint).T).T + translation
+    out[:, 3, 3] = 1
+    return out
+
+
+def export_transforms(root: str | Path, root_joint: np.ndarray) -> dict:
+    """NeRF-style ``transforms.json`` in the head's canonical frame: per frame the camera pose
+    that sees the (static) canonical head as the real camera saw the moving head."""
+    return transforms_from(read_meta(root), load_file(str(Path(root) / "tracking.safetensors")), root_joint)
+
+
+def transforms_from(meta: dict, tracking: dict, root_joint: np.ndarray) -> dict:
+    """:func:`export_transforms` from in-memory ``dataset.json`` content and tracking tensors."""
+    from headforge.render.camera import Cameras
+
+    w2c = head_to_camera(tracking["root_pose"].double().numpy(), tracking["translation"].double().numpy(), root_joint)
+    T = len(w2c)
+    K = torch.tensor(meta["intrinsics"], dtype=torch.float64).expand(T, 3, 3)
+    cams = Cameras(K, torch.from_numpy(w2c[:, :3, :3]), torch.from_numpy(w2c[:, :3, 3]), meta["resolution"], meta["resolution"])
+    out = cams.to_nerf_transforms([r["image"] for r in meta["frames"]])
+    for frame, record in zip(out["frames"], meta["frames"]):
+        frame.update(mask_path=record["mask"], valid=record["valid"], split=record["split"])
+    return out

@@ -1,0 +1,1 @@
+"""Head tracking: fitting the parametric head model to landmarks of a video."""
