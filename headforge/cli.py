@@ -156,13 +156,14 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
           max_frames: Optional[int] = typer.Option(None, help="stop after this many kept frames"),
           val_fraction: float = typer.Option(0.2, help="last fraction of frames held out for validation"),
           preset: str = typer.Option("quick", help="quick (CPU) or paper"),
+          focal: Optional[float] = typer.Option(None, help="known focal length in crop pixels (default: estimated)"),
           overlay: bool = typer.Option(True, help="write overlay.mp4 (landmarks + model wireframe)")) -> None:
     """Preprocess a video (crops, masks, landmarks) and track the head model in it."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from headforge.track.pipeline import TrackOptions, track_video
 
-    options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay)
+    options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay, focal)
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bars:
         def factory(description, total):

@@ -198,3 +198,21 @@ def test_track_talking_bun_full(talking_bun, tmp_path):
     assert metrics["frames_total"] == 1008 and metrics["frames_valid"] >= 1000
     assert metrics["fps_preprocess"] >= 30 and metrics["track_seconds"] <= 600
     assert metrics["landmark_median_px"] <= 3.0
+
+
+def test_tracking_a_model_with_ibug68_landmarks(synthetic, open_head_data):
+    """FLAME embeds iBUG-68: the tracker then fits the matching 68 MediaPipe detections."""
+    from dataclasses import replace
+
+    from headforge.head.landmarks import MEDIAPIPE_TO_IBUG68, detect_mediapipe
+    from headforge.head.model import HeadModel
+    from headforge.track.tracker import TrackerConfig, track_landmarks
+
+    ibug = replace(open_head_data, landmark_faces=open_head_data.landmark_faces[MEDIAPIPE_TO_IBUG68],
+                   landmark_bary=open_head_data.landmark_bary[MEDIAPIPE_TO_IBUG68])
+    _, frames, _, K = synthetic
+    lmk = np.stack([detect_mediapipe(f, static=False) for f in frames[:8]])
+    result = track_landmarks(HeadModel(ibug, landmarks_only=True), lmk, np.ones(8, bool), RES,
+                             TrackerConfig(rigid_steps=60, steps=150, focal=K[0, 0]))
+    assert result.projected.shape == (8, 68, 2)
+    assert result.median_px() < 2.0  # without the 17 jaw points

@@ -43,6 +43,37 @@ FACE_OVAL = np.array(sorted({10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 36
                              365, 379, 378, 400, 377, 152, 148, 176, 149, 150, 136, 172, 58,
                              132, 93, 234, 127, 162, 21, 54, 103, 67, 109}))
 
+# iBUG-68 upper/lower eyelid pairs (right eye first), for models embedding iBUG-68 (FLAME).
+IBUG_EYELID_PAIRS = np.array([[37, 41], [38, 40], [43, 47], [44, 46]])
+
+
+@dataclass(frozen=True)
+class LandmarkSpec:
+    """How a model's embedded landmarks correspond to MediaPipe's 478 detections.
+
+    detection_ids: (L,) MediaPipe index of each model landmark; contour: (L,) bool, points on
+    the face silhouette (down-weighted, excluded from the headline error); eyelid_pairs: (P, 2)
+    model-landmark indices of upper/lower lid points.
+    """
+
+    detection_ids: np.ndarray
+    contour: np.ndarray
+    eyelid_pairs: np.ndarray
+
+    @classmethod
+    def for_model(cls, n_landmarks: int) -> "LandmarkSpec":
+        if n_landmarks == N_MEDIAPIPE:
+            contour = np.zeros(N_MEDIAPIPE, bool)
+            contour[FACE_OVAL] = True
+            return cls(np.arange(N_MEDIAPIPE), contour, EYELID_PAIRS)
+        if n_landmarks == 68:
+            contour = np.zeros(68, bool)
+            contour[IBUG_JAW] = True
+            return cls(MEDIAPIPE_TO_IBUG68, contour, IBUG_EYELID_PAIRS)
+        raise HeadforgeError(f"cannot track a model with {n_landmarks} landmarks: headforge tracks models that "
+                             f"embed MediaPipe's {N_MEDIAPIPE} points or iBUG's 68 (FLAME's landmark_embedding.npy)")
+
+
 SKIN = np.array([0.86, 0.66, 0.55])
 LIPS = np.array([0.62, 0.28, 0.30])
 BROW = np.array([0.22, 0.15, 0.11])

@@ -25,7 +25,7 @@ from headforge.data import dataset as ds
 from headforge.data.preprocess import ClipDetections, Segmenter, crop, crop_windows, detect_clip, transform_points
 from headforge.data.video import iter_frames, video_info
 from headforge.errors import HeadforgeError
-from headforge.head.landmarks import FACE_OVAL
+from headforge.head.landmarks import LandmarkSpec
 from headforge.head.model import HeadModel
 from headforge.track.tracker import FLIP, FRAME_PARAMS, TrackerConfig, project, track_landmarks
 
@@ -40,6 +40,7 @@ class TrackOptions:
     val_fraction: float = 0.2
     preset: str = "quick"
     overlay: bool = True
+    focal: float | None = None  # known focal length in crop pixels; estimated when None
 
     def validate(self) -> None:
         if self.resolution < 64:
@@ -106,19 +107,24 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         K = np.asarray(json.loads((work / "camera.json").read_text())["K"])
     else:
         config = TrackerConfig.paper() if options.preset == "paper" else TrackerConfig.quick()
+        config.focal = options.focal
         advance = bar("tracking", config.rigid_steps + config.steps)
         result = track_landmarks(HeadModel(data, landmarks_only=True), lmk, det.valid, res, config,
                                  progress=advance and (lambda loss: advance()))
+        # "projected" holds the model's landmarks at the detections they match (NaN elsewhere)
+        projected = np.full_like(lmk, np.nan)
+        projected[:, result.spec.detection_ids] = result.projected
         tracked = {"shape": result.shape, **result.frames, "landmarks": torch.tensor(lmk, dtype=torch.float32),
-                   "valid": torch.tensor(det.valid), "projected": torch.tensor(result.projected, dtype=torch.float32)}
+                   "valid": torch.tensor(det.valid), "projected": torch.tensor(projected, dtype=torch.float32)}
         K = result.K
         (work / "camera.json").write_text(json.dumps({"K": K.tolist()}))
         save_file({k: v.contiguous() for k, v in tracked.items()}, str(work / "tracking.tmp.safetensors"))
         (work / "tracking.tmp.safetensors").replace(track_path)
     fit_seconds = time.perf_counter() - track_start
-    errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)
+    errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)  # NaN where not matched
     errors[~det.valid] = np.nan
-    inner = np.setdiff1d(np.arange(lmk.shape[1]), FACE_OVAL)
+    spec = LandmarkSpec.for_model(HeadModel(data).num_landmarks)
+    inner = spec.detection_ids[~spec.contour]
 
     # 3. crops and masks (+ overlay frames), written in parallel
     write_start = time.perf_counter()
@@ -176,7 +182,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
                "track_seconds": round(time.perf_counter() - start, 2), "fit_seconds": round(fit_seconds, 2),
                "landmark_median_px": round(float(np.nanmedian(errors[:, inner])), 3),
                "landmark_median_px_all": round(float(np.nanmedian(errors)), 3),
-               "landmark_error_excludes": "MediaPipe's 36 face-oval (jaw/silhouette contour) points",
+               "landmark_error_excludes": "face-contour points (MediaPipe's 36 face-oval / iBUG's 17 jaw points)",
                "resolution": res, "focal_px": round(float(K[0][0]), 2)}
     (work / "metrics.json").write_text(json.dumps(metrics, indent=2))
     if output.exists():
@@ -229,8 +235,11 @@ def _draw_overlay(image, detected, projected, verts_cam, head: HeadModel, K, val
     out = cv2.addWeighted(image, 0.65, wire, 0.35, 0)
     if valid:
         for pts, colour in ((detected, (40, 220, 40)), (projected, (240, 40, 40))):
-            contours = [np.round(pts[c] * 4).astype(np.int32) for c in CONTOURS]
+            contours = [np.round(pts[c] * 4).astype(np.int32) for c in CONTOURS if np.isfinite(pts[c]).all()]
             cv2.polylines(out, contours, True, colour, 1, cv2.LINE_AA, shift=2)
+            if not contours:  # a model with sparse landmarks (iBUG-68): dots
+                for x, y in np.round(pts[np.isfinite(pts).all(-1)]).astype(int):
+                    cv2.circle(out, (int(x), int(y)), 1, colour, -1)
     else:
         cv2.putText(out, "no face", (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 60, 60), 2)
     return out

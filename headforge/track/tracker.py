@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
-from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL, N_MEDIAPIPE
+from headforge.head.landmarks import N_MEDIAPIPE, LandmarkSpec
 from headforge.head.model import HeadModel
 
 FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
@@ -55,11 +55,12 @@ class TrackResult:
     shape: torch.Tensor  # (1, n_shape) full width of the model
     frames: dict[str, torch.Tensor]  # FRAME_PARAMS -> (T, ...)
     K: np.ndarray  # (3, 3) crop-pixel intrinsics
-    projected: np.ndarray  # (T, 478, 2) model landmarks in crop pixels
-    errors: np.ndarray  # (T, 478) px distance to the detections (NaN on invalid frames)
+    projected: np.ndarray  # (T, L, 2) model landmarks in crop pixels
+    errors: np.ndarray  # (T, L) px distance to the matching detections (NaN on invalid frames)
+    spec: LandmarkSpec  # which detection each model landmark matches
 
     def median_px(self, exclude_oval: bool = True) -> float:
-        cols = np.setdiff1d(np.arange(N_MEDIAPIPE), FACE_OVAL) if exclude_oval else np.arange(N_MEDIAPIPE)
+        cols = ~self.spec.contour if exclude_oval else np.ones(len(self.spec.contour), bool)
         return float(np.nanmedian(self.errors[:, cols]))
 
 
@@ -72,6 +73,9 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
                     config: TrackerConfig = TrackerConfig(), progress=None) -> TrackResult:
     """Fit ``model`` to MediaPipe landmarks (T, 478, 2) in crop pixels of a ``resolution``^2 crop.
 
+    Models embedding MediaPipe's 478 points use them all; models embedding iBUG-68 (FLAME)
+    use the matching 68 detections (:class:`~headforge.head.landmarks.LandmarkSpec`).
+
     Pass ``HeadModel(data, landmarks_only=True)``: the same landmarks at a fraction of the cost.
     """
     T = len(landmarks)
@@ -79,23 +83,27 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
         raise HeadforgeError(f"landmarks must be (T, {N_MEDIAPIPE}, 2), got {landmarks.shape}")
     if not valid.any():
         raise HeadforgeError("no valid frames to track")
+    spec = LandmarkSpec.for_model(model.num_landmarks)
+    landmarks = landmarks[:, spec.detection_ids]  # detections matching the model's landmarks
     bounded = model.meta.get("expression_range") == [0.0, 1.0]
     target = torch.tensor(np.nan_to_num(landmarks), dtype=torch.float32)
     valid_t = torch.tensor(valid)
-    weight = torch.ones(N_MEDIAPIPE)
-    weight[FACE_OVAL] = config.oval_weight
+    weight = torch.ones(len(spec.detection_ids))
+    weight[torch.from_numpy(spec.contour)] = config.oval_weight
     frame_w = valid_t.float()[:, None] * weight  # (T, 478)
     c = (resolution - 1) / 2
 
     # Initial depth and position from the inter-ocular distance.
     with torch.no_grad():
         rest = model().landmarks[0]
-    eye_model = (rest[33] - rest[263]).norm().item()
+    # outer eye corners: MediaPipe 33/263 = iBUG 36/45
+    a, b = [int(np.nonzero(spec.detection_ids == k)[0][0]) for k in (33, 263)]
+    eye_model = (rest[a] - rest[b]).norm().item()
     det = landmarks[valid]
-    eye_img = float(np.median(np.linalg.norm(det[:, 33] - det[:, 263], axis=-1)))
+    eye_img = float(np.median(np.linalg.norm(det[:, a] - det[:, b], axis=-1)))
     f0 = config.focal if config.focal is not None else config.focal_factor * resolution
     depth = f0 * eye_model / max(eye_img, 1.0)
-    mid = np.nan_to_num(0.5 * (landmarks[:, 33] + landmarks[:, 263]), nan=c)
+    mid = np.nan_to_num(0.5 * (landmarks[:, a] + landmarks[:, b]), nan=c)
     trans0 = np.stack([(mid[:, 0] - c) * depth / f0, (mid[:, 1] - c) * depth / f0, np.full(T, depth)], 1)
 
     log_focal = torch.tensor(float(np.log(f0)), dtype=torch.float32, requires_grad=config.focal is None)
@@ -126,9 +134,10 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
         data = (frame_w * err).sum() / frame_w.sum()  # L1 on landmark distances, as NHA
         if not stage_all:
             return data + config.smooth * (_smooth(poses["root_pose"]) + _smooth(trans))
-        lid_model = proj[:, EYELID_PAIRS[:, 0]] - proj[:, EYELID_PAIRS[:, 1]]
-        lid_det = target[:, EYELID_PAIRS[:, 0]] - target[:, EYELID_PAIRS[:, 1]]
-        lid = (valid_t.float()[:, None] * (lid_model - lid_det).norm(dim=-1) * scale).sum() / (valid_t.sum() * len(EYELID_PAIRS))
+        pairs = spec.eyelid_pairs
+        lid_model = proj[:, pairs[:, 0]] - proj[:, pairs[:, 1]]
+        lid_det = target[:, pairs[:, 0]] - target[:, pairs[:, 1]]
+        lid = (valid_t.float()[:, None] * (lid_model - lid_det).norm(dim=-1) * scale).sum() / (valid_t.sum() * len(pairs))
         e = expression()
         prior = (config.shape_prior * shape.pow(2).mean()
                  + config.expression_prior * (e.abs().mean() if bounded else e.pow(2).mean())
@@ -154,7 +163,7 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
     errors[~valid] = np.nan
     full_shape = torch.cat([shape.detach(), torch.zeros(1, model.n_shape - config.n_shape)], 1)
     frames = {"expression": expression().detach(), **{k: v.detach() for k, v in poses.items()}, "translation": trans.detach()}
-    return TrackResult(full_shape, frames, K.numpy().astype(np.float64), projected, errors)
+    return TrackResult(full_shape, frames, K.numpy().astype(np.float64), projected, errors, spec)
 
 
 def _smooth(x: torch.Tensor) -> torch.Tensor:
