@@ -176,31 +176,58 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
 
 
 @app.command("demo")
-def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder")) -> None:
-    """The main job on the embedded default: build open-head, fit it to a bundled photo,
-    write a report folder (model info, overlay PNG, metrics JSON)."""
+def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
+         video: Optional[Path] = typer.Option(None, help="also track this video (first 150 frames)")) -> None:
+    """The main job on the embedded default: build open-head, fit it to a bundled photo, render a
+    turntable through both render paths, optionally track a video; writes a report folder
+    (PNGs, MP4s, metrics.json, metrics.md)."""
+    import shutil
+
     import matplotlib.cbook
 
     from headforge.head.fit import fit_image, overlay
+    from headforge.render.io import write_mp4, write_png
+    from headforge.render.turntable import turntable_frames
 
+    tmp = output.with_name(output.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
     head = _load_model("open-head", None)
     photo = Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))
     pixels = _read_image(photo)
     _progress("fitting open-head to grace_hopper.jpg (matplotlib's sample photo)")
     fit = fit_image(head, pixels)
-    tmp = output.with_name(output.name + ".partial")
-    tmp.mkdir(parents=True, exist_ok=True)
-    _write_png(overlay(pixels, fit, head.faces.numpy()), tmp / "fit_grace_hopper.png")
-    metrics = {"model": head.name, "vertices": head.num_vertices, "landmarks": head.num_landmarks,
-               "landmark_embedding_median_px": head.meta.get("landmarks", {}).get("landmark_median_px"),
-               "fit_grace_hopper_median_px": fit.median_px}
-    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    if output.exists():
-        import shutil
+    write_png(tmp / "fit_grace_hopper.png", overlay(pixels, fit, head.faces.numpy()))
+    _progress("rendering a turntable: mesh path | point path")
+    start = time.perf_counter()
+    first = {}
 
+    def frames():
+        for i, frame in enumerate(turntable_frames(head, 60, 256, 100_000)):
+            first.setdefault("frame", frame)
+            yield frame
+
+    write_mp4(tmp / "turntable.mp4", frames(), total=60, description="turntable")
+    write_png(tmp / "turntable.png", first["frame"])
+    metrics = {"model": head.name, "vertices": head.num_vertices, "landmarks": head.num_landmarks,
+               "landmark_embedding_median_px": round(head.meta["landmarks"]["landmark_median_px"], 3),
+               "fit_grace_hopper_median_px": round(fit.median_px, 3),
+               "turntable_fps": round(60 / (time.perf_counter() - start), 2)}
+    if video is not None:
+        from headforge.track.pipeline import TrackOptions, track_video
+
+        _progress(f"tracking the first 150 frames of {video.name}")
+        tracked = track_video(video, tmp / "track", TrackOptions(max_frames=150), log=_progress)
+        metrics.update({f"track_{k}": v for k, v in tracked.items() if isinstance(v, (int, float))})
+    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
+    (tmp / "metrics.md").write_text("\n".join(table) + "\n")
+    if output.exists():
         shutil.rmtree(output)
     tmp.replace(output)
-    console.print(f"report written to {output}/ (fit_grace_hopper.png, metrics.json)")
+    files = ", ".join(sorted(p.name for p in output.iterdir()))
+    console.print(f"report written to {output}/ ({files})")
     print(json.dumps(metrics))
 
 
