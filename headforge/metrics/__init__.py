@@ -1,0 +1,1 @@
+"""Metrics of the seed papers' tables: image quality, geometry, point-cloud distributions."""

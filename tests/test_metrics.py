@@ -1,0 +1,157 @@
+"""Metrics against independent references: scikit-image, pytorch-msssim, scipy, brute force,
+closed forms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial.distance import directed_hausdorff
+
+from headforge.errors import HeadforgeError
+from headforge.metrics import distribution, geometry, image
+
+
+def _pair(B=2, H=180, W=170, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    gt = torch.rand(B, H, W, 3, generator=gen, dtype=torch.float64)
+    gt = torch.nn.functional.avg_pool2d(gt.permute(0, 3, 1, 2), 5, 1, 2).permute(0, 2, 3, 1)  # some structure
+    pred = (gt + 0.05 * torch.randn(gt.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    return pred, gt
+
+
+def test_l1_psnr_hand_cases():
+    gt = torch.zeros(1, 4, 4, 3, dtype=torch.float64)
+    pred = gt + 0.1
+    assert image.l1(pred, gt).item() == pytest.approx(0.1)
+    assert image.psnr(pred, gt).item() == pytest.approx(20.0)
+    mask = torch.zeros(1, 4, 4)
+    mask[0, :2] = 1
+    pred[0, 2:] = 1.0  # error outside the mask is ignored
+    assert image.psnr(pred, gt, mask).item() == pytest.approx(20.0)
+
+
+def test_ssim_matches_scikit_image():
+    from skimage.metrics import structural_similarity
+
+    pred, gt = _pair()
+    ours = image.ssim(pred, gt)
+    for b in range(2):
+        ref = structural_similarity(pred[b].numpy(), gt[b].numpy(), gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False, data_range=1.0, channel_axis=-1)
+        assert ours[b].item() == pytest.approx(ref, abs=1e-6)
+    assert image.ssim(gt, gt).min().item() == pytest.approx(1.0)
+
+
+def test_ms_ssim_matches_pytorch_msssim():
+    from pytorch_msssim import ms_ssim
+
+    pred, gt = _pair(H=200, W=192)
+    ref = ms_ssim(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2), data_range=1.0, size_average=False)
+    torch.testing.assert_close(image.ms_ssim(pred, gt), ref, atol=1e-5, rtol=1e-5)
+
+
+def test_masked_ssim_ignores_outside_pixels():
+    pred, gt = _pair(B=1)
+    mask = torch.zeros(gt.shape[:3])
+    mask[:, 40:140, 40:130] = 1
+    broken = pred.clone()
+    broken[:, :20] = 0  # far outside the mask (and its 5 px window margin)
+    torch.testing.assert_close(image.ssim(broken, gt, mask), image.ssim(pred, gt, mask))
+    assert image.ssim(broken, gt).item() < image.ssim(pred, gt).item()
+
+
+def test_image_metric_bad_input():
+    pred, gt = _pair(B=1, H=32, W=32)
+    with pytest.raises(HeadforgeError, match="one shape"):
+        image.l1(pred, gt[:, :16])
+    with pytest.raises(HeadforgeError, match="mask is empty"):
+        image.psnr(pred, gt, torch.zeros(1, 32, 32))
+    with pytest.raises(HeadforgeError, match="MS-SSIM needs images larger"):
+        image.ms_ssim(pred, gt)
+
+
+def test_weight_needing_metrics_report_none_without_weights():
+    pred, gt = _pair(B=1, H=64, W=64)
+    assert image.lpips(pred, gt) is None or image.lpips(pred, gt).shape == (1,)
+
+
+def test_fid_and_kid_closed_forms():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(4000, 4, generator=gen, dtype=torch.float64)
+    b = torch.randn(4000, 4, generator=gen, dtype=torch.float64) * 2 + 1
+    # Gaussians N(0, I) and N(1, 4I): FID = |mu|^2 + tr(I + 4I - 2*2I) = 4 + 4
+    assert image.fid_from_features(a, b) == pytest.approx(8.0, rel=0.05)
+    assert abs(image.kid_from_features(a, a[torch.randperm(4000, generator=gen)])) < 1e-2
+    assert image.kid_from_features(a, b) > 0.5
+
+
+def test_normal_angle_error_hand_case():
+    n = torch.zeros(1, 2, 2, 3)
+    n[..., 2] = 1
+    tilted = n.clone()
+    tilted[0, 0, 0] = torch.tensor([1.0, 0.0, 1.0])  # 45 degrees
+    mask = torch.ones(1, 2, 2)
+    assert geometry.normal_angle_error(tilted, n, mask).item() == pytest.approx(45 / 4)
+    mask[0, 0, 0] = 0
+    assert geometry.normal_angle_error(tilted, n, mask).item() == pytest.approx(0.0, abs=1e-5)
+
+
+def test_hausdorff_against_scipy_and_exact_sphere():
+    sphere = trimesh.creation.icosphere(4, radius=1.0)
+    bigger = trimesh.creation.icosphere(4, radius=1.01)
+    h = geometry.one_sided_hausdorff(bigger.vertices, bigger.faces, sphere.vertices, sphere.faces, samples=5000)
+    assert 0.0095 < h["mean"] < 0.0101 and h["max"] < 0.012
+    # against scipy's directed Hausdorff between dense point sets
+    pts, _ = trimesh.sample.sample_surface(bigger, 3000, seed=1)
+    ours = geometry.points_to_mesh(pts, sphere.vertices, sphere.faces).max()
+    dense, _ = trimesh.sample.sample_surface(sphere, 400_000, seed=2)
+    ref = directed_hausdorff(pts, dense)[0]
+    assert ours <= ref + 1e-9 and ref - ours < 0.006  # the surface is at least as close as its samples
+    with pytest.raises(HeadforgeError, match="no faces"):
+        geometry.one_sided_hausdorff(sphere.vertices, sphere.faces, sphere.vertices, np.zeros((0, 3), int))
+
+
+def test_chamfer_and_normal_consistency_brute_force():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(60, 3)), rng.normal(size=(50, 3))
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    assert geometry.chamfer(a, b) == pytest.approx((d.min(1) ** 2).mean() + (d.min(0) ** 2).mean())
+    na, nb = rng.normal(size=(60, 3)), rng.normal(size=(50, 3))
+    ua, ub = na / np.linalg.norm(na, axis=1, keepdims=True), nb / np.linalg.norm(nb, axis=1, keepdims=True)
+    ref = 0.5 * (np.abs((ua * ub[d.argmin(1)]).sum(1)).mean() + np.abs((ub * ua[d.argmin(0)]).sum(1)).mean())
+    assert geometry.normal_consistency(a, na, b, nb) == pytest.approx(ref)
+
+
+def test_distribution_metrics_brute_force():
+    rng = np.random.default_rng(1)
+    gen = [rng.normal(0, 0.1, (40, 3)) for _ in range(5)]
+    ref = [rng.normal(0, 0.1, (40, 3)) + 0.05 * i for i in range(4)]
+
+    def cd(x, y):
+        d = np.linalg.norm(x[:, None] - y[None], axis=-1)
+        return (d.min(1) ** 2).mean() + (d.min(0) ** 2).mean()
+
+    M = np.array([[cd(g, r) for r in ref] for g in gen])
+    out = distribution.mmd_cov_1nna(gen, ref)
+    assert out["mmd_cd"] == pytest.approx(M.min(0).mean())
+    assert out["cov_cd"] == pytest.approx(len(set(M.argmin(1))) / len(ref))
+    both = gen + ref
+    labels = [0] * len(gen) + [1] * len(ref)
+    correct = 0
+    for i, x in enumerate(both):
+        dist = [cd(x, y) if j != i else np.inf for j, y in enumerate(both)]
+        correct += labels[int(np.argmin(dist))] == labels[i]
+    assert out["1nna_cd"] == pytest.approx(correct / len(both))
+
+
+def test_jsd_hand_cases():
+    a = [np.array([[0.1, 0.1, 0.1]])]
+    b = [np.array([[-0.3, -0.3, -0.3]])]
+    assert distribution.jsd(a, a) == pytest.approx(0.0)
+    assert distribution.jsd(a, b) == pytest.approx(math.log(2))  # disjoint supports
+    with pytest.raises(HeadforgeError, match="no points fall inside"):
+        distribution.jsd([np.full((3, 3), 5.0)], a)
