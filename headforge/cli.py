@@ -175,6 +175,24 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
     print(json.dumps(metrics))
 
 
+@app.command("eval")
+def evaluate(pred: Path = typer.Argument(..., help="folder of predicted images"),
+             gt: Path = typer.Argument(..., help="folder of ground-truth images (same file names)"),
+             masks: Optional[Path] = typer.Option(None, help="folder of masks (same names) for masked metrics"),
+             output: Path = typer.Option(Path("eval"), "-o", "--output", help="report folder"),
+             as_json: bool = typer.Option(False, "--json", help="print the mean metrics as one JSON object")) -> None:
+    """Image metrics (L1, PSNR, SSIM, MS-SSIM; LPIPS when its weights exist) between two folders."""
+    from headforge.metrics.evaluate import evaluate_folders, write_report
+
+    result = evaluate_folders(pred, gt, masks)
+    write_report(result, output)
+    summary = {"images": result["images"], **result["mean"]}
+    if as_json:
+        print(json.dumps(summary))
+    else:
+        console.print((output / "metrics.md").read_text())
+
+
 @app.command("demo")
 def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
          video: Optional[Path] = typer.Option(None, help="also track this video (first 150 frames)")) -> None:

@@ -155,3 +155,34 @@ def test_jsd_hand_cases():
     assert distribution.jsd(a, b) == pytest.approx(math.log(2))  # disjoint supports
     with pytest.raises(HeadforgeError, match="no points fall inside"):
         distribution.jsd([np.full((3, 3), 5.0)], a)
+
+
+def test_eval_command(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    for d in ("pred", "gt", "masks"):
+        (tmp_path / d).mkdir()
+    for i in range(3):
+        gt = (rng.random((64, 64, 3)) * 255).astype(np.uint8)
+        pred = np.clip(gt.astype(int) + rng.integers(-10, 10, gt.shape), 0, 255).astype(np.uint8)
+        Image.fromarray(gt).save(tmp_path / "gt" / f"{i}.png")
+        Image.fromarray(pred).save(tmp_path / "pred" / f"{i}.png")
+        mask = np.zeros((64, 64), np.uint8)
+        mask[16:48, 16:48] = 255
+        Image.fromarray(mask).save(tmp_path / "masks" / f"{i}.png")
+    cmd = [sys.executable, "-m", "headforge.cli", "eval", str(tmp_path / "pred"), str(tmp_path / "gt"),
+           "--masks", str(tmp_path / "masks"), "-o", str(tmp_path / "out"), "--json"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["images"] == 3 and 25 < summary["psnr"] < 40 and summary["lpips"] in ("n/a", summary["lpips"])
+    assert {"ssim_masked", "psnr_masked"} <= set(summary)
+    assert (tmp_path / "out" / "grid.png").is_file() and "3 images" in (tmp_path / "out" / "metrics.md").read_text()
+    (tmp_path / "pred" / "2.png").unlink()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 1 and "have no prediction" in proc.stderr and "2.png" in proc.stderr
