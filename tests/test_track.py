@@ -216,3 +216,18 @@ def test_tracking_a_model_with_ibug68_landmarks(synthetic, open_head_data):
                              TrackerConfig(rigid_steps=60, steps=150, focal=K[0, 0]))
     assert result.projected.shape == (8, 68, 2)
     assert result.median_px() < 2.0  # without the 17 jaw points
+
+
+def test_rotation_metadata_is_applied_like_ffmpeg():
+    """tests/data/rotated90.mp4: a generated 64x48 clip (red band along the top of the stored
+    frames) tagged rotate=90; ffmpeg's auto-rotation shows it 48 wide with the band on the left."""
+    from pathlib import Path
+
+    from headforge.data.video import iter_frames, read_frame
+
+    path = Path(__file__).parent / "data" / "rotated90.mp4"
+    frame = read_frame(path)
+    assert frame.shape == (64, 48, 3)
+    red = np.argwhere(frame[..., 0] > 128)
+    assert red[:, 1].mean() < 10 and abs(red[:, 0].mean() - 31.5) < 2
+    assert all(f.shape == (64, 48, 3) for _, f in iter_frames(path))
