@@ -51,6 +51,7 @@ def evaluate_folders(pred_dir: Path, gt_dir: Path, mask_dir: Path | None = None)
         values = {"l1": im.l1(pred, gt).item(), "psnr": im.psnr(pred, gt).item(), "ssim": im.ssim(pred, gt).item()}
         if min(gt.shape[1:3]) > 160:
             values["ms_ssim"] = im.ms_ssim(pred, gt).item()
+        values["cpbd"] = im.cpbd(pred[0])  # sharpness of the prediction (no reference needed)
         lp = im.lpips(pred, gt)
         values["lpips"] = None if lp is None else lp.item()
         if mask_dir is not None:
