@@ -53,16 +53,6 @@ def _read_image(path: Path, frame: int = 0):
         raise HeadforgeError(f"cannot read image {path}: {exc}") from None
 
 
-def _write_png(array, path: Path) -> None:
-    """Write through a temporary name so an interrupted run leaves no half PNG."""
-    from PIL import Image
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial.png")
-    Image.fromarray(array).save(tmp)
-    tmp.replace(path)
-
-
 @model_app.command("info")
 def model_info(model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
                as_json: bool = typer.Option(False, "--json", help="print one JSON object")) -> None:
@@ -104,6 +94,7 @@ def model_fit_image(image: Path = typer.Argument(..., help="a photo with one fac
                     frame: int = typer.Option(0, help="frame index when IMAGE is a video")) -> None:
     """Fit the head model (rigid + shape + expression) to MediaPipe landmarks of a photo."""
     from headforge.head.fit import ImageFitConfig, fit_image, overlay
+    from headforge.render.io import write_png
 
     if steps < 1:
         raise HeadforgeError(f"--steps must be >= 1, got {steps}")
@@ -111,7 +102,7 @@ def model_fit_image(image: Path = typer.Argument(..., help="a photo with one fac
     head = _load_model(model, flame_dir)
     _progress(f"fitting {head.name} to {image.name} ({steps} steps)")
     fit = fit_image(head, pixels, ImageFitConfig(steps=steps))
-    _write_png(overlay(pixels, fit, head.faces.numpy()), output)
+    write_png(output, overlay(pixels, fit, head.faces.numpy()))
     summary = {"image": str(image), "output": str(output), "landmark_median_px": round(fit.median_px, 3),
                "landmark_median_px_inner": round(fit.median_px_inner, 3)}
     print(json.dumps(summary))

@@ -16,7 +16,7 @@ from headforge.errors import HeadforgeError
 from headforge.head.landmarks import FACE_OVAL, N_MEDIAPIPE, detect_mediapipe
 from headforge.head.model import HeadModel
 
-FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # canonical head axes (y up, +z to viewer) -> OpenCV
 
 
 @dataclass

@@ -177,30 +177,14 @@ class LandmarkSample:
     pitch: float
 
 
-def _pose_vertices(data: HeadModelData, sample: LandmarkSample) -> np.ndarray:
+def _pose_vertices(model, sample: LandmarkSample) -> np.ndarray:
     import torch
 
-    from headforge.head.model import HeadModel
-
-    model = _cached_model(data)
     with torch.no_grad():
         out = model(shape=torch.tensor(sample.shape[None], dtype=torch.float32),
                     expression=torch.tensor(sample.expression[None], dtype=torch.float32),
                     jaw_pose=torch.tensor([[sample.jaw, 0.0, 0.0]], dtype=torch.float32))
     return out.vertices[0].double().numpy()
-
-
-_MODELS: dict[int, object] = {}
-
-
-def _cached_model(data: HeadModelData):
-    from headforge.head.model import HeadModel
-
-    key = id(data)
-    if key not in _MODELS:
-        _MODELS.clear()
-        _MODELS[key] = HeadModel(data)
-    return _MODELS[key]
 
 
 def make_samples(data: HeadModelData, seed: int, n_identities: int, views, expressions) -> list[LandmarkSample]:
@@ -237,8 +221,8 @@ def _camera_for(sample: LandmarkSample, resolution: int) -> PinholeCamera:
                         yaw_deg=sample.yaw, pitch_deg=sample.pitch, target=(0.0, -0.02, 0.0))
 
 
-def _detect_on_render(data: HeadModelData, sample: LandmarkSample, resolution: int):
-    vertices = _pose_vertices(data, sample)
+def _detect_on_render(data: HeadModelData, model, sample: LandmarkSample, resolution: int):
+    vertices = _pose_vertices(model, sample)
     camera = _camera_for(sample, resolution)
     image, hits = render_for_landmarks(data, vertices, camera)
     return vertices, camera, image, detect_mediapipe(image)
@@ -256,9 +240,12 @@ def embed_landmarks(data: HeadModelData, resolution: int = 512, progress=None,
     samples = make_samples(data, seed=0, n_identities=n_identities, views=BUILD_VIEWS,
                            expressions=BUILD_EXPRESSIONS)
     say(f"embedding MediaPipe landmarks from {len(samples)} renders at {resolution}px")
+    from headforge.head.model import HeadModel
+
+    model = HeadModel(data)
     hits_face, hits_bary, used = [], [], 0
     for sample in samples:
-        vertices, camera, _, lmk = _detect_on_render(data, sample, resolution)
+        vertices, camera, _, lmk = _detect_on_render(data, model, sample, resolution)
         if lmk is None:
             continue
         used += 1
@@ -301,10 +288,13 @@ def embed_landmarks(data: HeadModelData, resolution: int = 512, progress=None,
 def evaluate_embedding(data: HeadModelData, resolution: int = 512, seed: int = 1) -> dict:
     """Median distance (px) between MediaPipe detections and the projected embedded landmarks
     on renders of identities, expressions and views not used to build the embedding."""
+    from headforge.head.model import HeadModel
+
     samples = make_samples(data, seed=seed, n_identities=3, views=TEST_VIEWS, expressions=TEST_EXPRESSIONS)
+    model = HeadModel(data)
     errors = []
     for sample in samples:
-        vertices, camera, _, lmk = _detect_on_render(data, sample, resolution)
+        vertices, camera, _, lmk = _detect_on_render(data, model, sample, resolution)
         if lmk is None:
             continue
         corners = vertices[data.faces[data.landmark_faces]]

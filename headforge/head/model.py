@@ -126,7 +126,8 @@ class HeadModelData:
 
 
 def _landmark_subset(data: HeadModelData) -> HeadModelData:
-    """The data restricted to the landmark triangles, joints regressed as before."""
+    """The data restricted to the landmark triangles (its joint regressor is unused: HeadModel
+    takes the joint bases from the full data)."""
     from dataclasses import replace
 
     if data.landmark_faces is None:
@@ -135,17 +136,11 @@ def _landmark_subset(data: HeadModelData) -> HeadModelData:
     keep = np.unique(tri)
     remap = np.full(len(data.v_template), -1)
     remap[keep] = np.arange(len(keep))
-    # Joints come from the full mesh: fold them into a regressor on the kept vertices by
-    # solving for the same joint positions at the template and along every basis.
-    full_j = data.j_regressor @ data.v_template
-    sub = replace(data, v_template=data.v_template[keep], faces=remap[tri], uv_faces=data.uv_faces[data.landmark_faces],
+    return replace(data, v_template=data.v_template[keep], faces=remap[tri], uv_faces=data.uv_faces[data.landmark_faces],
                   shapedirs=data.shapedirs[keep], exprdirs=data.exprdirs[keep],
                   posedirs=None if data.posedirs is None else data.posedirs[keep], weights=data.weights[keep],
                   j_regressor=np.zeros((len(data.parents), len(keep))), landmark_faces=np.arange(len(tri)),
                   regions={}, meta={**data.meta, "landmarks_only": True})
-    sub.meta["_joint_bases"] = (full_j, np.einsum("jv,vck->jck", data.j_regressor,
-                                                  np.concatenate([data.shapedirs, data.exprdirs], axis=2)))
-    return sub
 
 
 class HeadOutput(NamedTuple):
@@ -173,6 +168,11 @@ class HeadModel(torch.nn.Module):
         and ``landmarks`` are unchanged -- a cheap forward for landmark fitting."""
         super().__init__()
         data.validate()
+        # Joints are linear in the blend coefficients: fold the regressor into the bases, from
+        # the full mesh (a landmarks-only model keeps the same joints).
+        all_dirs = np.concatenate([data.shapedirs, data.exprdirs], axis=2)
+        j_template = data.j_regressor @ data.v_template
+        j_dirs = np.einsum("jv,vck->jck", data.j_regressor, all_dirs)
         if landmarks_only:
             data = _landmark_subset(data)
         self.name = data.name
@@ -194,14 +194,7 @@ class HeadModel(torch.nn.Module):
         dirs = np.concatenate([data.shapedirs, data.exprdirs], axis=2).reshape(V * 3, -1)
         self.register_buffer("blenddirs", f32(np.ascontiguousarray(dirs.T)))
         self.register_buffer("j_regressor", f32(data.j_regressor))
-        # Joints are linear in the blend coefficients: fold the regressor into the bases.
         J = len(data.parents)
-        if "_joint_bases" in data.meta:  # a landmark subset: joints of the full mesh
-            j_template, j_dirs = data.meta.pop("_joint_bases")
-            self.meta.pop("_joint_bases", None)
-        else:
-            j_template = data.j_regressor @ data.v_template
-            j_dirs = np.einsum("jv,vck->jck", data.j_regressor, dirs.reshape(V, 3, -1))
         self.register_buffer("j_template", f32(j_template))
         self.register_buffer("j_blenddirs", f32(j_dirs.transpose(2, 0, 1).reshape(-1, J * 3)))
         self.register_buffer("weights", f32(data.weights))

@@ -16,6 +16,14 @@ BAND = 8  # rows per parallel work item
 
 
 @numba.njit(cache=True)
+def _bands(ymin, ymax, height):
+    """Row bands of the image and the primitives overlapping each (offsets, items)."""
+    n_bands = (height + BAND - 1) // BAND
+    offsets, items = _bin_rows(ymin, ymax, n_bands, BAND)
+    return n_bands, offsets, items
+
+
+@numba.njit(cache=True)
 def _bin_rows(ymin, ymax, n_bands, band):
     """Lists of primitive ids per row band, for primitives covering rows [ymin, ymax]."""
     counts = np.zeros(n_bands + 1, np.int64)
@@ -53,8 +61,7 @@ def _rasterize(xyz, faces, height, width, near, face_out, bary_out, depth_out):
         else:
             ymin[f] = max(0, int(np.ceil(lo)))
             ymax[f] = min(height - 1, int(np.floor(hi)))
-    n_bands = (height + BAND - 1) // BAND
-    offsets, items = _bin_rows(ymin, ymax, n_bands, BAND)
+    n_bands, offsets, items = _bands(ymin, ymax, height)
     for band in numba.prange(n_bands):
         r0 = band * BAND
         r1 = min(r0 + BAND, height) - 1
@@ -152,8 +159,7 @@ def _splat(xyz, radius, height, width, near, idx_out, depth_out):
         else:
             ymin[i] = max(0, int(np.ceil(y - r)))
             ymax[i] = min(height - 1, int(np.floor(y + r)))
-    n_bands = (height + BAND - 1) // BAND
-    offsets, items = _bin_rows(ymin, ymax, n_bands, BAND)
+    n_bands, offsets, items = _bands(ymin, ymax, height)
     for band in numba.prange(n_bands):
         r0 = band * BAND
         r1 = min(r0 + BAND, height) - 1

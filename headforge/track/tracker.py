@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
+from headforge.head.fit import FLIP, project  # noqa: F401  (re-exported for the pipeline)
 from headforge.head.landmarks import N_MEDIAPIPE, LandmarkSpec
 from headforge.head.model import HeadModel
 
-FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
 FRAME_PARAMS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
 
 
@@ -62,11 +62,6 @@ class TrackResult:
     def median_px(self, exclude_oval: bool = True) -> float:
         cols = ~self.spec.contour if exclude_oval else np.ones(len(self.spec.contour), bool)
         return float(np.nanmedian(self.errors[:, cols]))
-
-
-def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    uvw = points_cam @ K.T
-    return uvw[..., :2] / uvw[..., 2:3].clamp(min=1e-6)
 
 
 def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, resolution: int,
