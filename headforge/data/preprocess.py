@@ -97,7 +97,9 @@ def crop_windows(landmarks: np.ndarray, valid: np.ndarray, frame_size: tuple[int
     if not valid.any():
         raise HeadforgeError("no face was found in any frame")
     T = len(valid)
-    lo, hi = np.nanmin(landmarks, axis=1), np.nanmax(landmarks, axis=1)  # (T, 2)
+    lo = np.full((T, 2), np.nan)
+    hi = np.full((T, 2), np.nan)
+    lo[valid], hi[valid] = landmarks[valid].min(axis=1), landmarks[valid].max(axis=1)
     centre = 0.5 * (lo + hi)
     extent = np.max(hi - lo, axis=1)
     t = np.arange(T)
