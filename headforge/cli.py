@@ -172,7 +172,7 @@ def evaluate(pred: Path = typer.Argument(..., help="folder of predicted images")
              masks: Optional[Path] = typer.Option(None, help="folder of masks (same names) for masked metrics"),
              output: Path = typer.Option(Path("eval"), "-o", "--output", help="report folder"),
              as_json: bool = typer.Option(False, "--json", help="print the mean metrics as one JSON object")) -> None:
-    """Image metrics (L1, PSNR, SSIM, MS-SSIM; LPIPS when its weights exist) between two folders."""
+    """Image metrics (L1, PSNR, SSIM, MS-SSIM, CPBD; LPIPS when its weights exist) between two folders."""
     from headforge.metrics.evaluate import evaluate_folders, write_report
 
     result = evaluate_folders(pred, gt, masks)
