@@ -21,7 +21,6 @@ import argparse
 import json
 import resource
 import sys
-import time
 
 import numpy as np
 import torch

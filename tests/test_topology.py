@@ -10,7 +10,6 @@ import trimesh
 from headforge.errors import HeadforgeError
 from headforge.head import topology
 from headforge.head.model import HeadModel
-from headforge.head.lbs import surface_points
 
 
 def test_subdivision_counts_and_midpoints(tiny_data):
