@@ -4,7 +4,8 @@ Steps, each checkpointed in ``DATASET.partial/`` so an interrupted run resumes:
   1. detections.npz   MediaPipe landmarks of every kept frame (tracking mode)
   2. tracking.safetensors   the head model fitted to the landmarks of the whole clip
   3. frames/, masks/  crops (and selfie-segmentation masks) written by a thread pool
-  4. overlay.mp4, dataset.json, metrics.json, transforms.json; then the folder is renamed
+  4. overlay.mp4      streamed frame by frame
+  5. dataset.json, metrics.json, transforms.json; then the folder is renamed
 """
 
 from __future__ import annotations
@@ -123,15 +124,14 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     fit_seconds = time.perf_counter() - track_start
     errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)  # NaN where not matched
     errors[~det.valid] = np.nan
-    spec = LandmarkSpec.for_model(HeadModel(data).num_landmarks)
+    head = HeadModel(data)
+    spec = LandmarkSpec.for_model(head.num_landmarks)
     inner = spec.detection_ids[~spec.contour]
 
-    # 3. crops and masks (+ overlay frames), written in parallel
+    # 3. crops and masks, written by a thread pool
     write_start = time.perf_counter()
     (work / "frames").mkdir(exist_ok=True)
     (work / "masks").mkdir(exist_ok=True)
-    head = HeadModel(data)
-    overlay_frames = []
     segment = Segmenter()
     advance = bar("crops and masks", T)
     with ThreadPoolExecutor(max_workers=2) as pool:
@@ -141,13 +141,10 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
                 break
             name = f"{t:05d}.png"
             frame_path, mask_path = work / "frames" / name, work / "masks" / name
-            done = frame_path.is_file() and mask_path.is_file()
-            crop_rgb = crop(image, windows[t], res)
-            if not done:
+            if not (frame_path.is_file() and mask_path.is_file()):
+                crop_rgb = crop(image, windows[t], res)
                 mask = crop(segment(image), windows[t], res, interpolation=cv2.INTER_LINEAR)
                 jobs.append(pool.submit(_write_pair, frame_path, crop_rgb, mask_path, mask))
-            if options.overlay:
-                overlay_frames.append(crop_rgb)
             if advance:
                 advance()
         for job in jobs:
@@ -155,14 +152,19 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     segment.close()
     write_seconds = time.perf_counter() - write_start
 
-    # 4. overlay video, metadata
+    # 4. overlay video, streamed (decoding and cropping again is cheaper than holding the clip)
     if options.overlay:
         from headforge.render.io import write_mp4
 
         verts = _camera_vertices(head, tracked)
-        write_mp4(work / "overlay.mp4", (_draw_overlay(f, lmk[t], tracked["projected"][t].numpy(), verts[t], head, K, det.valid[t])
-                                         for t, f in enumerate(overlay_frames)), fps=30.0 / options.every, total=T,
+        projected_all = tracked["projected"].numpy()
+        frames_in = ((t, crop(image, windows[t], res))
+                     for t, (_, image) in enumerate(iter_frames(video, options.every, options.max_frames)) if t < T)
+        write_mp4(work / "overlay.mp4", (_draw_overlay(f, lmk[t], projected_all[t], verts[t], head, K, det.valid[t])
+                                         for t, f in frames_in), fps=30.0 / options.every, total=T,
                   description="overlay video")
+
+    # 5. metadata
     n_val = int(round(T * options.val_fraction))
     frames = [{"index": t, "source_frame": int(det.frame_indices[t]), "valid": bool(det.valid[t]),
                "split": "val" if t >= T - n_val else "train", "image": f"frames/{t:05d}.png",
