@@ -30,6 +30,25 @@ def _progress(message: str) -> None:
     console.print(f"[dim]{time.strftime('%H:%M:%S')}[/] {message}")
 
 
+class _Bars:
+    """Rich progress bars; ``factory(description, total)`` returns a no-argument advance callable."""
+
+    def __enter__(self):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                                 console=console, transient=True)
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self.progress.__exit__(*exc)
+
+    def factory(self, description: str, total):
+        task = self.progress.add_task(description, total=total)
+        return lambda: self.progress.advance(task)
+
+
 def _load_model(name: str, flame_dir: Optional[str]):
     from headforge.head import create
 
@@ -139,7 +158,7 @@ def render_turntable(output: Path = typer.Option(..., "-o", "--output", help="MP
 
 
 @app.command("track")
-def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mov, ...)"),
+def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mov, ...) or a folder of frames"),
           output: Path = typer.Option(..., "-o", "--output", help="dataset folder to write"),
           model: str = MODEL_OPT, flame_dir: Optional[str] = FLAME_OPT,
           resolution: int = typer.Option(512, help="crop size in pixels"),
@@ -148,36 +167,68 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
           val_fraction: float = typer.Option(0.2, help="last fraction of frames held out for validation"),
           preset: str = typer.Option("quick", help="quick (CPU) or paper"),
           focal: Optional[float] = typer.Option(None, help="known focal length in crop pixels (default: estimated)"),
+          crop: str = typer.Option("face", help="face: a smooth window around the face; full: the whole square frame"),
+          masks: Optional[Path] = typer.Option(None, help="folder of foreground masks named like the frames "
+                                                          "(default: MediaPipe selfie segmentation)"),
           overlay: bool = typer.Option(True, help="write overlay.mp4 (landmarks + model wireframe)")) -> None:
-    """Preprocess a video (crops, masks, landmarks) and track the head model in it."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
+    """Preprocess a video or a folder of frames (crops, masks, landmarks) and track the head model in it."""
     from headforge.track.pipeline import TrackOptions, track_video
 
-    options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay, focal)
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bars:
-        def factory(description, total):
-            task = bars.add_task(description, total=total)
-            return lambda: bars.advance(task)
-
-        metrics = track_video(video, output, options, log=_progress, progress_factory=factory)
+    options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay, focal,
+                           crop, None if masks is None else str(masks))
+    with _Bars() as bars:
+        metrics = track_video(video, output, options, log=_progress, progress_factory=bars.factory)
     console.print(f"dataset written to {output}/ (dataset.json, frames/, masks/, overlay.mp4, metrics.json)")
     print(json.dumps(metrics))
 
 
+@app.command("synth")
+def synth(output: Path = typer.Option(..., "-o", "--output", help="benchmark folder to write"),
+          subjects: int = typer.Option(4, help="number of subjects"),
+          train_frames: int = typer.Option(200, help="training frames per subject"),
+          val_frames: int = typer.Option(210, help="validation frames per subject (unseen expressions/poses)"),
+          resolution: int = typer.Option(512, help="image size in pixels"),
+          seed: int = typer.Option(0, help="random seed (subjects and motion)"),
+          gt_every: int = typer.Option(5, help="full ground truth (meshes, normals, views, relit, albedo) every N frames"),
+          supersample: int = typer.Option(2, help="anti-aliasing: render at N x N samples per pixel")) -> None:
+    """Synthetic talking-head subjects (full anny body, hair, skin albedo) with exact ground truth,
+    each written as a tracked headforge dataset plus gt/."""
+    from headforge.data.synthetic import SynthConfig, synthesize
+
+    config = SynthConfig(subjects=subjects, train_frames=train_frames, val_frames=val_frames, resolution=resolution,
+                         seed=seed, gt_every=gt_every, supersample=supersample)
+    with _Bars() as bars:
+        report = synthesize(output, config, log=_progress, progress_factory=bars.factory)
+    console.print(f"benchmark written to {output}/ (contact_sheet.png, benchmark.json, subject_*/)")
+    print(json.dumps({k: report[k] for k in ("render_seconds", "track_seconds", "total_seconds")}
+                     | {"subjects": len(report["subjects"])}))
+
+
 @app.command("eval")
-def evaluate(pred: Path = typer.Argument(..., help="folder of predicted images"),
-             gt: Path = typer.Argument(..., help="folder of ground-truth images (same file names)"),
+def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a tracked dataset / geometry folder"),
+             gt: Path = typer.Argument(..., help="ground-truth images (same file names), or a headforge synth subject"),
              masks: Optional[Path] = typer.Option(None, help="folder of masks (same names) for masked metrics"),
+             split: str = typer.Option("val", help="geometry mode: val, train or all ground-truth frames"),
+             every: int = typer.Option(1, help="geometry mode: use every N-th ground-truth frame"),
              output: Path = typer.Option(Path("eval"), "-o", "--output", help="report folder"),
              as_json: bool = typer.Option(False, "--json", help="print the mean metrics as one JSON object")) -> None:
-    """Image metrics (L1, PSNR, SSIM, MS-SSIM, CPBD; LPIPS when its weights exist) between two folders."""
-    from headforge.metrics.evaluate import evaluate_folders, write_report
+    """Image metrics (L1, PSNR, SSIM, MS-SSIM, CPBD; LPIPS when its weights exist) between two
+    folders; or, when GT is a synth subject, geometry metrics (normal angle error, one-sided
+    Hausdorff full head / face in mm, normal consistency) of a tracked dataset or exported geometry."""
+    if (gt / "gt" / "geometry.safetensors").is_file():
+        from headforge.metrics.benchmark import evaluate_geometry, write_geometry_report
 
-    result = evaluate_folders(pred, gt, masks)
-    write_report(result, output)
-    summary = {"images": result["images"], **result["mean"]}
+        if every < 1:
+            raise HeadforgeError(f"--every must be >= 1, got {every}")
+        result = evaluate_geometry(pred, gt, split=split, every=every)
+        write_geometry_report(result, output)
+        summary = {"frames": result["frames"], "hair": result["hair"], **result["mean"]}
+    else:
+        from headforge.metrics.evaluate import evaluate_folders, write_report
+
+        result = evaluate_folders(pred, gt, masks)
+        write_report(result, output)
+        summary = {"images": result["images"], **result["mean"]}
     if as_json:
         print(json.dumps(summary))
     else:

@@ -1,4 +1,8 @@
-"""Video decoding with PyAV (rotation metadata honoured)."""
+"""Video decoding with PyAV (rotation metadata honoured), or a folder of numbered images.
+
+A folder source (``frames/00000.png``, ... sorted by name; PNG/JPEG) behaves like a video at
+30 fps: what ``headforge synth`` renders, or frames a user exported from another tool.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +13,25 @@ import numpy as np
 from headforge.errors import HeadforgeError
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
+
+
+def image_files(folder: str | Path) -> list[Path]:
+    """The images of a frame folder, sorted by name; an error if there are none."""
+    folder = Path(folder)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+    if not files:
+        raise HeadforgeError(f"no PNG/JPEG frames in folder {folder}")
+    return files
+
+
+def _read_image(path: Path) -> np.ndarray:
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise HeadforgeError(f"cannot read image {path}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def is_video(path: str | Path) -> bool:
@@ -33,6 +56,10 @@ def video_info(path: str | Path) -> dict:
     import av
 
     path = Path(path)
+    if path.is_dir():
+        files = image_files(path)
+        h, w = _read_image(files[0]).shape[:2]
+        return {"fps": 30.0, "frames": len(files), "width": w, "height": h}
     _check_file(path)
     try:
         with av.open(str(path)) as container:
@@ -49,13 +76,20 @@ def video_info(path: str | Path) -> dict:
 
 
 def iter_frames(path: str | Path, every: int = 1, max_frames: int | None = None):
-    """Yield (frame index, (H, W, 3) uint8 RGB upright) for every ``every``-th frame."""
+    """Yield (frame index, (H, W, 3) uint8 RGB upright) for every ``every``-th frame of a video
+    file or an image folder."""
     import av
 
     path = Path(path)
-    _check_file(path)
     if every < 1:
         raise HeadforgeError(f"--every must be >= 1, got {every}")
+    if path.is_dir():
+        for count, i in enumerate(range(0, len(files := image_files(path)), every)):
+            if max_frames is not None and count >= max_frames:
+                return
+            yield i, _read_image(files[i])
+        return
+    _check_file(path)
     count = 0
     try:
         with av.open(str(path)) as container:

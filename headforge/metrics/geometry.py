@@ -29,7 +29,7 @@ def normal_angle_error(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor)
 def _mesh(vertices, faces) -> trimesh.Trimesh:
     vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
     if len(faces) == 0:
-        raise HeadforgeError("the ground-truth mesh has no faces")
+        raise HeadforgeError("a mesh has no faces")
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

@@ -24,7 +24,7 @@ from safetensors.torch import load_file, save_file
 
 from headforge.data import dataset as ds
 from headforge.data.preprocess import ClipDetections, Segmenter, crop, crop_windows, detect_clip, transform_points
-from headforge.data.video import iter_frames, video_info
+from headforge.data.video import image_files, iter_frames, video_info
 from headforge.errors import HeadforgeError
 from headforge.head.landmarks import LandmarkSpec
 from headforge.head.model import HeadModel
@@ -42,6 +42,8 @@ class TrackOptions:
     preset: str = "quick"
     overlay: bool = True
     focal: float | None = None  # known focal length in crop pixels; estimated when None
+    crop: str = "face"  # "face": a smooth window around the face; "full": the whole (square) frame
+    masks: str | None = None  # folder of foreground masks named like the frames (instead of selfie segmentation)
 
     def validate(self) -> None:
         if self.resolution < 64:
@@ -50,6 +52,10 @@ class TrackOptions:
             raise HeadforgeError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
         if self.preset not in ("quick", "paper"):
             raise HeadforgeError(f"--preset must be quick or paper, got {self.preset!r}")
+        if self.crop not in ("face", "full"):
+            raise HeadforgeError(f"--crop must be face or full, got {self.crop!r}")
+        if self.masks is not None and not Path(self.masks).is_dir():
+            raise HeadforgeError(f"mask folder not found: {self.masks}")
         if self.max_frames is not None and self.max_frames < 1:
             raise HeadforgeError(f"--max-frames must be >= 1, got {self.max_frames}")
 
@@ -95,7 +101,11 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         shutil.rmtree(work)
         raise HeadforgeError(f"no face found in any of the {T} frames of {video}")
     log(f"{int(det.valid.sum())} of {T} frames have a face")
-    windows = crop_windows(det.landmarks, det.valid, det.frame_size)
+    if options.crop == "full":
+        w, h = det.frame_size
+        windows = np.tile([(w - 1) / 2, (h - 1) / 2, max(w, h)], (T, 1)).astype(np.float64)
+    else:
+        windows = crop_windows(det.landmarks, det.valid, det.frame_size)
     res = options.resolution
     lmk = np.stack([transform_points(det.landmarks[t], windows[t], res) for t in range(T)])
 
@@ -132,7 +142,13 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     write_start = time.perf_counter()
     (work / "frames").mkdir(exist_ok=True)
     (work / "masks").mkdir(exist_ok=True)
-    segment = Segmenter()
+    if options.masks is None:
+        segment = Segmenter()
+    else:
+        mask_files = image_files(options.masks)
+
+        def segment(image, t=None):
+            return cv2.imread(str(mask_files[t]), cv2.IMREAD_GRAYSCALE)
     advance = bar("crops and masks", T)
     with ThreadPoolExecutor(max_workers=2) as pool:
         jobs = []
@@ -143,13 +159,15 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
             frame_path, mask_path = work / "frames" / name, work / "masks" / name
             if not (frame_path.is_file() and mask_path.is_file()):
                 crop_rgb = crop(image, windows[t], res)
-                mask = crop(segment(image), windows[t], res, interpolation=cv2.INTER_LINEAR)
+                mask = crop(segment(image) if options.masks is None else segment(image, int(det.frame_indices[t])),
+                            windows[t], res, interpolation=cv2.INTER_LINEAR)
                 jobs.append(pool.submit(_write_pair, frame_path, crop_rgb, mask_path, mask))
             if advance:
                 advance()
         for job in jobs:
             job.result()
-    segment.close()
+    if options.masks is None:
+        segment.close()
     write_seconds = time.perf_counter() - write_start
 
     # 4. overlay video, streamed (decoding and cropping again is cheaper than holding the clip)

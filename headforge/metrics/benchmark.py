@@ -1,0 +1,216 @@
+"""Geometry evaluation on a ``headforge synth`` subject (NHA Table 1 protocol).
+
+For every ground-truth frame of the chosen split (``gt/geometry.safetensors`` lists them):
+
+- per-pixel normal angle error (degrees) between the prediction rendered with the GT camera
+  and the GT normal map, over the pixels both cover, in the GT face region and on the full
+  head (face, head skin, hair, eyes, mouth; neck excluded);
+- one-sided distance prediction -> GT surface (mm): NHA's "average mesh alignment error"
+  (mean over area-uniform samples) and the max, for the predicted full head and face, after a
+  rigid ICP alignment of the predicted face to the GT face (the 3DFAW-video protocol NHA cites:
+  a monocular reconstruction is known up to depth; NHA's FLAME row, 1.2-1.4 mm on the face,
+  is only possible aligned), and without alignment in camera space (``*_camera_mm``);
+- normal consistency between prediction samples and the GT surface (PointAvatar).
+
+A prediction is either a tracked dataset (the head model posed with ``tracking.safetensors``;
+the baseline row) or a folder with ``geometry.safetensors`` holding camera-space
+``vertices`` (N, V, 3) for ``frames`` (N,), ``faces`` (F, 3) and bool vertex masks
+``face_vertices`` / ``head_vertices`` (V,) -- what avatar trainers export.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from safetensors.numpy import load_file
+
+from headforge.errors import HeadforgeError
+from headforge.metrics.geometry import normal_angle_error, normal_consistency, one_sided_hausdorff
+
+
+@dataclass
+class PredictedGeometry:
+    frames: np.ndarray  # (N,) frame indices
+    vertices: np.ndarray  # (N, V, 3) camera space, metres
+    faces: np.ndarray  # (F, 3)
+    face_vertices: np.ndarray  # (V,) bool
+    head_vertices: np.ndarray  # (V,) bool: the full head (neck excluded)
+    source: str
+
+
+def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeometry:
+    """The tracked head model of a ``headforge track`` dataset at ``frames`` (camera space)."""
+    from safetensors.torch import load_file as load_torch
+
+    from headforge.data.dataset import read_meta
+    from headforge.head import load_data
+    from headforge.head.model import HeadModel
+    from headforge.track.tracker import FLIP, FRAME_PARAMS
+
+    dataset = Path(dataset)
+    meta = read_meta(dataset)
+    tracked = load_torch(str(dataset / "tracking.safetensors"))
+    data = load_data(meta["model"], None) if meta["model"] == "open-head" else load_data("flame", None)
+    head = HeadModel(data)
+    T = tracked["translation"].shape[0]
+    if frames.max() >= T:
+        raise HeadforgeError(f"{dataset} has {T} frames, the ground truth asks for frame {int(frames.max())}")
+    idx = torch.from_numpy(frames)
+    with torch.no_grad():
+        out = head(shape=tracked["shape"].expand(len(frames), -1), **{k: tracked[k][idx] for k in FRAME_PARAMS[:-1]})
+        verts = out.vertices @ torch.as_tensor(FLIP, dtype=out.vertices.dtype).T + tracked["translation"][idx][:, None]
+    V = verts.shape[1]
+    face = np.zeros(V, bool)
+    face[data.regions["face"]] = True
+    head_mask = np.ones(V, bool)
+    for region in ("neck", "lower_neck"):
+        if region in data.regions:
+            head_mask[data.regions[region]] = False
+    return PredictedGeometry(frames, verts.numpy(), data.faces, face, head_mask, f"tracked {meta['model']} ({dataset})")
+
+
+def exported_geometry(folder: str | Path) -> PredictedGeometry:
+    path = Path(folder) / "geometry.safetensors"
+    if not path.is_file():
+        raise HeadforgeError(f"{folder} has neither tracking.safetensors nor geometry.safetensors")
+    g = load_file(str(path))
+    for key in ("frames", "vertices", "faces", "face_vertices", "head_vertices"):
+        if key not in g:
+            raise HeadforgeError(f"{path} lacks '{key}'")
+    return PredictedGeometry(g["frames"], g["vertices"], g["faces"], g["face_vertices"].astype(bool),
+                             g["head_vertices"].astype(bool), str(folder))
+
+
+def _read_png(path: Path, flags) -> np.ndarray:
+    import cv2
+
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise HeadforgeError(f"ground-truth file missing or unreadable: {path}")
+    return image
+
+
+def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resolution: int) -> np.ndarray:
+    """(R, R, 3) camera-space unit normals of a camera-space mesh, zero where empty."""
+    from headforge.head.topology import vertex_normals
+    from headforge.render import mesh
+    from headforge.render.camera import Cameras
+
+    v = torch.from_numpy(np.asarray(vertices, np.float32))[None]
+    f = torch.from_numpy(np.asarray(faces, np.int64))
+    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    frags = mesh.rasterize(cams, v, f)
+    n = torch.nn.functional.normalize(mesh.interpolate(vertex_normals(v, f), frags, f), dim=-1)
+    return torch.where(frags.mask[..., None], n, torch.zeros(3))[0].numpy()
+
+
+def _align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                gt_face_vertices: np.ndarray) -> np.ndarray:
+    """``verts`` moved by the rigid ICP transform that aligns the predicted face surface to the
+    GT face surface (point-to-point on dense samples)."""
+    gt_face = trimesh.Trimesh(gt_verts, gt_faces[gt_face_vertices[gt_faces].all(1)], process=False)
+    target, _ = trimesh.sample.sample_surface(gt_face, 30_000, seed=1)
+    source, _ = trimesh.sample.sample_surface(trimesh.Trimesh(verts, pred_face_faces, process=False), 5000, seed=2)
+    matrix, _, _ = trimesh.registration.icp(source, target, initial=np.eye(4), max_iterations=40, scale=False)
+    return verts @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _faces_in(faces: np.ndarray, vertex_mask: np.ndarray) -> np.ndarray:
+    return vertex_mask[faces].all(1)
+
+
+def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val", samples: int = 10_000,
+                      every: int = 1) -> dict:
+    """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""
+    subject, pred = Path(subject), Path(pred)
+    gt_path = subject / "gt" / "geometry.safetensors"
+    info_path = subject / "gt" / "subject.json"
+    if not gt_path.is_file() or not info_path.is_file():
+        raise HeadforgeError(f"{subject} is not a headforge synth subject (gt/geometry.safetensors or gt/subject.json missing)")
+    gt = load_file(str(gt_path))
+    info = json.loads(info_path.read_text())
+    if len(gt["faces"]) == 0:
+        raise HeadforgeError(f"{gt_path}: the ground-truth mesh has no faces")
+    train = info["train_frames"]
+    split_mask = {"val": gt["frames"] >= train, "train": gt["frames"] < train, "all": np.ones(len(gt["frames"]), bool)}
+    if split not in split_mask:
+        raise HeadforgeError(f"split must be val, train or all, got {split!r}")
+    rows = np.nonzero(split_mask[split])[0][::every]
+    if len(rows) == 0:
+        raise HeadforgeError(f"{subject} has no ground-truth frames in split {split!r}")
+    frames = gt["frames"][rows]
+    prediction = tracked_geometry(pred, frames) if (pred / "tracking.safetensors").is_file() else exported_geometry(pred)
+    lookup = {int(f): i for i, f in enumerate(prediction.frames)}
+    missing = [int(f) for f in frames if int(f) not in lookup]
+    if missing:
+        raise HeadforgeError(f"{pred} has no geometry for {len(missing)} ground-truth frames, e.g. frame {missing[0]}")
+    K = np.asarray(info["intrinsics"])
+    res = int(info["resolution"])
+    labels_face = info["labels"]["face"]
+    head_labels = np.array(info["head_labels"])
+    face_sel = _faces_in(prediction.faces, prediction.face_vertices)
+    head_sel = _faces_in(prediction.faces, prediction.head_vertices)
+    per_frame, error_maps = [], []
+    for row, f in zip(rows, frames):
+        i = lookup[int(f)]
+        verts = prediction.vertices[i]
+        name = f"{int(f):05d}.png"
+        gt_n = _read_png(subject / "gt" / "normals" / name, -1)[..., ::-1].astype(np.float32) / 255 * 2 - 1
+        labels = _read_png(subject / "gt" / "labels" / name, 0)
+        if gt_n.shape[:2] != (res, res) or labels.shape != (res, res):
+            raise HeadforgeError(f"{subject / 'gt' / 'normals' / name} does not match the resolution {res}")
+        pred_n = render_normals(verts, prediction.faces, K, res)
+        covered = (np.linalg.norm(pred_n, axis=-1) > 0.5) & (labels > 0)
+        face_px = covered & (labels == labels_face)
+        head_px = covered & np.isin(labels, head_labels)
+        if not face_px.any() or not head_px.any():
+            raise HeadforgeError(f"frame {int(f)}: the prediction covers none of the ground-truth face")
+        pn, gn = torch.from_numpy(pred_n)[None], torch.from_numpy(gt_n.copy())[None]
+        nae_face = float(normal_angle_error(pn, gn, torch.from_numpy(face_px)[None])[0])
+        nae_head = float(normal_angle_error(pn, gn, torch.from_numpy(head_px)[None])[0])
+        gv, gf = gt["vertices"][row], gt["faces"]
+        cam_full = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
+        cam_face = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
+        aligned = _align_face(verts, prediction.faces[face_sel], gv, gf, gt["labels"] == labels_face)
+        full = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
+        face = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
+        verts = aligned
+        pm = trimesh.Trimesh(verts, prediction.faces[head_sel], process=False)
+        pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
+        gm = trimesh.Trimesh(gv, gf, process=False)
+        closest, _, gfid = trimesh.proximity.closest_point(gm, pts)
+        nc = normal_consistency(pts, pm.face_normals[fid], closest, gm.face_normals[gfid])
+        per_frame.append({"frame": int(f), "normal_error_face_deg": nae_face, "normal_error_head_deg": nae_head,
+                          "hausdorff_full_mm": 1000 * full["mean"], "hausdorff_face_mm": 1000 * face["mean"],
+                          "hausdorff_full_max_mm": 1000 * full["max"], "hausdorff_face_max_mm": 1000 * face["max"],
+                          "hausdorff_full_camera_mm": 1000 * cam_full["mean"],
+                          "hausdorff_face_camera_mm": 1000 * cam_face["mean"], "normal_consistency": nc})
+        if len(error_maps) < 3:
+            cos = (pred_n * gt_n).sum(-1) / np.maximum(np.linalg.norm(gt_n, axis=-1), 1e-6)
+            err = np.where(head_px, np.degrees(np.arccos(np.clip(cos, -1, 1))) / 45.0, 0)
+            error_maps.append(np.concatenate([0.5 * (gt_n + 1), 0.5 * (pred_n + 1), np.repeat(err[..., None], 3, -1)], 1))
+    keys = [k for k in per_frame[0] if k != "frame"]
+    mean = {k: float(np.mean([r[k] for r in per_frame])) for k in keys}
+    return {"prediction": prediction.source, "subject": str(subject), "split": split, "frames": len(per_frame),
+            "frames_available": int(split_mask[split].sum()), "mean": mean, "per_frame": per_frame,
+            "error_maps": error_maps, "hair": info["subject"]["hair_style"]}
+
+
+def write_geometry_report(result: dict, out_dir: Path) -> None:
+    from headforge.render.io import write_png
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    maps = result.pop("error_maps")
+    (out_dir / "metrics.json").write_text(json.dumps(result, indent=1))
+    lines = [f"Geometry of {result['prediction']} against {result['subject']} ({result['split']} split): "
+             f"{result['frames']} of {result['frames_available']} ground-truth frames.", "",
+             "| metric | mean |", "| --- | --- |"]
+    lines += [f"| {k} | {v:.3f} |" for k, v in result["mean"].items()]
+    (out_dir / "metrics.md").write_text("\n".join(lines) + "\n")
+    if maps:
+        write_png(out_dir / "normal_error.png", np.clip(np.concatenate(maps, 0), 0, 1))
