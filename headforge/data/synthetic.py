@@ -340,8 +340,9 @@ def build_hair(style: str, vertices: np.ndarray, faces: np.ndarray, scalp: np.nd
     dist, nearest = cKDTree(samples).query(grid, workers=-1)
     sign = np.sign(((grid - samples[nearest]) * normals[nearest]).sum(1))
     sdf = _hair_sdf(style, grid, dist * sign, sample_w[nearest], head_centre, rng).reshape(*shape)
+    sdf = np.pad(sdf, 1, constant_values=1.0)  # empty border: the surface closes inside the grid
     verts, tris, _, _ = marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3)
-    verts = verts + lo
+    verts = verts + lo - voxel
     hair = trimesh.Trimesh(verts, tris, process=True)  # skimage winds them outward for this sdf
     parts = hair.split(only_watertight=False)
     if len(parts):

@@ -1,0 +1,136 @@
+"""headforge synth: motion, geometry, renders, dataset format and the geometry evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from safetensors.numpy import load_file
+
+from headforge.data import synthetic as S
+from headforge.errors import HeadforgeError
+
+
+@pytest.fixture(scope="module")
+def anny_model():
+    return S.load_anny()
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory, anny_model, open_head_data):
+    """One tiny subject, rendered and tracked end to end (MediaPipe needs ~200 px faces)."""
+    out = tmp_path_factory.mktemp("synth") / "bench"
+    config = S.SynthConfig(subjects=1, train_frames=10, val_frames=6, resolution=224, supersample=1, gt_every=2,
+                           novel_yaws=(20.0,))
+    report = S.synthesize(out, config, log=lambda m: None)
+    return out, config, report
+
+
+def test_talking_sequences_stay_in_range_blink_and_differ(anny_model):
+    labels = list(anny_model.facial_action_labels)
+    acts, rot = S.talking_sequence(labels, 300, seed=3, validation=False)
+    acts_v, rot_v = S.talking_sequence(labels, 300, seed=3, validation=True)
+    assert acts.shape == (300, 52) and rot.shape == (300, 3)
+    assert acts.min() >= 0 and acts.max() <= 1
+    assert np.abs(np.degrees(rot)).max(0).tolist() <= [15.0 + 1e-6, 30.0 + 1e-6, 5.0 + 1e-6]
+    assert np.degrees(np.abs(rot[:, 1])).max() > 10  # the head really turns
+    blink = labels.index("eyeBlinkLeft")
+    assert (acts[:, blink] >= 1.0).sum() >= 2  # several full blinks in 12 s
+    assert acts[:, labels.index("jawOpen")].max() > 0.2
+    used_train = set(np.nonzero(acts.max(0) > 0.05)[0])
+    used_val = set(np.nonzero(acts_v.max(0) > 0.05)[0])
+    assert used_val - used_train  # validation shows expressions training never does
+
+
+def test_hair_is_a_closed_shell_outside_the_skin(anny_model):
+    import trimesh
+
+    subject = S.sample_subject(anny_model, 2, seed=0)  # bun
+    config = S.SynthConfig(hair_voxel_m=0.006)
+    sm, _ = S.build_subject_mesh(anny_model, subject, config)
+    hair = trimesh.Trimesh(sm.hair_vertices, sm.hair_faces, process=False)
+    assert hair.is_watertight and hair.volume > 0  # outward winding
+    assert subject.hair_style == "bun"
+    # hair sits on the scalp: above the eyes, and no hair vertex deep inside the body
+    assert np.median(sm.hair_vertices[:, 1]) > 0.0
+    body = trimesh.Trimesh(np.asarray(S.pose_subject(anny_model, sm, _, np.zeros((1, 52)), np.zeros((1, 3)))[0][:len(sm.keep)]),
+                           sm.faces, process=False)
+    _, dist, _ = trimesh.proximity.closest_point(body, sm.hair_vertices[::20])
+    assert np.percentile(dist, 95) < 0.06
+
+
+def test_synth_writes_a_tracked_dataset_with_consistent_ground_truth(bench):
+    from headforge.data.dataset import HeadDataset
+
+    out, config, report = bench
+    subject = out / "subject_00"
+    assert (out / "contact_sheet.png").is_file() and (out / "benchmark.json").is_file()
+    assert not out.with_name("bench.partial").exists()
+    train, val = HeadDataset(subject, "train"), HeadDataset(subject, "val")
+    assert len(train) + len(val) == report["subjects"][0]["frames_valid"] and len(val) <= 6
+    item = train[0]
+    assert item["image"].shape == (224, 224, 3)
+    meta = json.loads((subject / "dataset.json").read_text())
+    assert meta["synthetic"]["gt"] == "gt/"
+    assert abs(meta["intrinsics"][0][0] - config.focal_factor * 224) < 1e-3  # known focal (float32) passed on
+    info = json.loads((subject / "gt/subject.json").read_text())
+    geo = load_file(str(subject / "gt/geometry.safetensors"))
+    assert geo["frames"].tolist() == list(range(0, 16, 2))
+    # GT geometry projects onto the rendered mask; head labels sit inside it
+    K = np.asarray(info["intrinsics"])
+    f = 12  # a validation frame with full GT
+    v = geo["vertices"][list(geo["frames"]).index(f)]
+    uv = (v[:, :2] / v[:, 2:]) * K[0, 0] + K[0, 2]
+    mask = cv2.imread(str(subject / f"masks/{f:05d}.png"), 0) / 255.0
+    head = np.isin(geo["labels"], [1, 2])
+    px = np.round(uv[head]).astype(int)
+    inside = (px >= 0).all(1) & (px < 224).all(1)
+    assert mask[px[inside, 1], px[inside, 0]].mean() > 0.95
+    labels = cv2.imread(str(subject / f"gt/labels/{f:05d}.png"), 0)
+    assert ((labels > 0) == (mask > 0.5)).mean() > 0.97
+    normals = cv2.imread(str(subject / f"gt/normals/{f:05d}.png"), -1)[..., ::-1] / 255.0 * 2 - 1
+    n = np.linalg.norm(normals[labels > 0], axis=-1)
+    assert np.median(np.abs(n - 1)) < 0.02
+    face_n = normals[labels == S.LABELS["face"]]
+    assert np.median(face_n[:, 2]) < -0.5  # face normals look back at the camera (OpenCV: -z)
+    for name in (f"gt/albedo/{f:05d}.png", f"gt/relit/{f:05d}.png", f"gt/views/{f:05d}_yaw+20.png"):
+        assert (subject / name).is_file(), name
+    relit = cv2.imread(str(subject / f"gt/relit/{f:05d}.png"))
+    frame = cv2.imread(str(subject / f"frames/{f:05d}.png"))
+    assert np.abs(relit.astype(float) - frame).mean() > 3  # another light really changes the image
+
+
+def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
+    from headforge.metrics.benchmark import evaluate_geometry
+
+    out, _, _ = bench
+    subject = out / "subject_00"
+    result = evaluate_geometry(subject, subject, split="val", samples=2000)
+    assert result["frames"] == 3 and result["frames_available"] == 3
+    m = result["mean"]
+    assert 3 < m["normal_error_head_deg"] < 40
+    assert 0.3 < m["hausdorff_face_mm"] < 8  # tracked face within millimetres after alignment
+    assert m["hausdorff_face_mm"] <= m["hausdorff_face_camera_mm"] + 0.5
+    assert 0.7 < m["normal_consistency"] <= 1
+
+
+def test_geometry_eval_refuses_bad_inputs(bench, tmp_path):
+    from headforge.metrics.benchmark import evaluate_geometry
+
+    out, _, _ = bench
+    subject = out / "subject_00"
+    with pytest.raises(HeadforgeError, match="not a headforge synth subject"):
+        evaluate_geometry(subject, tmp_path)
+    with pytest.raises(HeadforgeError, match="neither tracking.safetensors nor geometry.safetensors"):
+        evaluate_geometry(tmp_path, subject)
+    with pytest.raises(HeadforgeError, match="split must be"):
+        evaluate_geometry(subject, subject, split="test")
+
+
+def test_synth_config_errors():
+    with pytest.raises(HeadforgeError, match="--resolution"):
+        S.SynthConfig(resolution=32).validate()
+    with pytest.raises(HeadforgeError, match="--gt-every"):
+        S.SynthConfig(gt_every=0).validate()
