@@ -20,6 +20,8 @@ model_app = typer.Typer(help="Parametric head models: build, inspect, fit to a p
 app.add_typer(model_app, name="model")
 render_app = typer.Typer(help="Render head models and avatars to PNG/MP4.", no_args_is_help=True)
 app.add_typer(render_app, name="render")
+fit_app = typer.Typer(help="Train avatars from a tracked dataset.", no_args_is_help=True)
+app.add_typer(fit_app, name="fit")
 console = Console(stderr=True)
 
 MODEL_OPT = typer.Option("open-head", "--model", "-m", help="open-head (built in) or flame (your own files)")
@@ -180,6 +182,106 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
         metrics = track_video(video, output, options, log=_progress, progress_factory=bars.factory)
     console.print(f"dataset written to {output}/ (dataset.json, frames/, masks/, overlay.mp4, metrics.json)")
     print(json.dumps(metrics))
+
+
+@fit_app.command("nha")
+def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headforge track or synth"),
+            output: Path = typer.Option(..., "-o", "--output", help="run folder (resumed when it exists)"),
+            preset: str = typer.Option("quick", help="quick (CPU) or paper (GPU-sized)"),
+            iterations: Optional[int] = typer.Option(None, help="scale the 3-stage schedule to this many iterations"),
+            resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)")) -> None:
+    """Neural Head Avatars: geometry MLP offsets + neural texture on the tracked head model."""
+    from headforge.avatars.nha.trainer import NHAConfig, fit
+
+    if preset not in ("quick", "paper"):
+        raise HeadforgeError(f"--preset must be quick or paper, got {preset!r}")
+    config = NHAConfig.quick() if preset == "quick" else NHAConfig.paper()
+    if resolution is not None:
+        if resolution < 64:
+            raise HeadforgeError(f"--resolution must be >= 64, got {resolution}")
+        config.resolution = resolution
+    if iterations is not None:
+        if iterations < 3:
+            raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
+        total = config.total_iters
+        config.geometry_iters = max(1, round(iterations * config.geometry_iters / total))
+        config.texture_iters = max(1, round(iterations * config.texture_iters / total))
+        config.joint_iters = max(1, iterations - config.geometry_iters - config.texture_iters)
+    with _Bars() as bars:
+        metrics = fit(dataset, output, config, log=_progress, progress=bars.factory("training", config.total_iters))
+    console.print(f"run written to {output}/ (checkpoint, progress.png, val/, metrics.json)")
+    print(json.dumps(metrics))
+
+
+@render_app.command("avatar")
+def render_avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit"),
+                  output: Path = typer.Option(..., "-o", "--output", help="MP4 to write"),
+                  driving: Optional[Path] = typer.Option(None, help="dataset whose tracked expressions/poses drive the avatar"),
+                  orbit: bool = typer.Option(False, help="orbit the camera around the head (novel views)"),
+                  split: str = typer.Option("val", help="frames of the run's own dataset when not driven: train, val or all"),
+                  max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
+                  fps: float = typer.Option(25.0)) -> None:
+    """Reenactment and novel views of a trained avatar."""
+    import torch
+    from safetensors.torch import load_file
+
+    from headforge.avatars.nha.export import render_frames
+    from headforge.avatars.nha.model import FRAME_KEYS
+    from headforge.avatars.nha.trainer import load_run
+    from headforge.data.dataset import read_meta
+    from headforge.render.io import write_mp4
+
+    avatar, config, meta = load_run(run)
+    if driving is not None:
+        dmeta = read_meta(driving)
+        if dmeta["model"] != meta["model"] or dmeta.get("n_shape") != meta.get("n_shape"):
+            raise HeadforgeError(f"{driving} was tracked with {dmeta['model']}, the avatar uses {meta['model']}")
+        tracked = load_file(str(driving / "tracking.safetensors"))
+        rows = [r["index"] for r in dmeta["frames"] if r["valid"]]
+        seq = {k: tracked[k][rows].float() for k in FRAME_KEYS}
+        # keep the avatar's own framing: its mean translation, the driver's motion around it
+        own = avatar.frames["translation"].detach()
+        seq["translation"] = seq["translation"] - seq["translation"].mean(0) + own.mean(0)
+    else:
+        if split not in ("train", "val", "all"):
+            raise HeadforgeError(f"--split must be train, val or all, got {split!r}")
+        rows = [r["index"] for r in meta["frames"] if r["valid"] and (split == "all" or r["split"] == split)]
+        seq = {k: avatar.frames[k].detach()[rows] for k in FRAME_KEYS}
+    if max_frames is not None:
+        seq = {k: v[:max_frames] for k, v in seq.items()}
+    K = torch.tensor(meta["intrinsics"], dtype=torch.float32)
+    scale = config.resolution / meta["resolution"]
+    K[0, 0] *= scale
+    K[1, 1] *= scale
+    K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+    T = seq["translation"].shape[0]
+    write_mp4(output, render_frames(avatar, K, config.resolution, seq, orbit=orbit), fps=fps, total=T,
+              description=f"rendering {T} frames")
+    print(json.dumps({"output": str(output), "frames": T}))
+
+
+@app.command("export")
+def export(run: Path = typer.Argument(..., help="a run folder of headforge fit"),
+           output: Path = typer.Option(..., "-o", "--output", help="folder to write"),
+           fmt: str = typer.Option("obj", "--format", help="obj, ply or glb"),
+           frames: Optional[str] = typer.Option(None, help="also export these tracked frames, e.g. 0,10,20 or 0-99"),
+           texture_size: int = typer.Option(512, help="baked texture size in pixels")) -> None:
+    """Export the avatar mesh (neutral and per frame) with its baked texture."""
+    from headforge.avatars.nha.export import export_run
+    from headforge.avatars.nha.trainer import load_run
+
+    avatar, _, _ = load_run(run)
+    wanted = None
+    if frames:
+        try:
+            wanted = []
+            for part in frames.split(","):
+                a, _, b = part.partition("-")
+                wanted += list(range(int(a), int(b) + 1)) if b else [int(a)]
+        except ValueError:
+            raise HeadforgeError(f"--frames must look like 0,10,20 or 0-99, got {frames!r}") from None
+    written = export_run(avatar, output, fmt, wanted, texture_size)
+    print(json.dumps({"output": str(output), "files": len(written) + 1}))
 
 
 @app.command("synth")

@@ -78,3 +78,16 @@ def talking_bun():
     if not path.is_file():
         pytest.skip("../shared/data/video/talking_bun.mp4 is not present")
     return path
+
+
+@pytest.fixture(scope="session")
+def synth_bench(tmp_path_factory, open_head_data):
+    """One tiny `headforge synth` subject, rendered and tracked end to end (MediaPipe needs
+    faces of ~200 px): (benchmark folder, config, report)."""
+    from headforge.data import synthetic as S
+
+    out = tmp_path_factory.mktemp("synth") / "bench"
+    config = S.SynthConfig(subjects=1, train_frames=10, val_frames=6, resolution=224, supersample=1, gt_every=2,
+                           novel_yaws=(20.0,))
+    report = S.synthesize(out, config, log=lambda m: None)
+    return out, config, report

@@ -19,13 +19,8 @@ def anny_model():
 
 
 @pytest.fixture(scope="module")
-def bench(tmp_path_factory, anny_model, open_head_data):
-    """One tiny subject, rendered and tracked end to end (MediaPipe needs ~200 px faces)."""
-    out = tmp_path_factory.mktemp("synth") / "bench"
-    config = S.SynthConfig(subjects=1, train_frames=10, val_frames=6, resolution=224, supersample=1, gt_every=2,
-                           novel_yaws=(20.0,))
-    report = S.synthesize(out, config, log=lambda m: None)
-    return out, config, report
+def bench(synth_bench):
+    return synth_bench
 
 
 def test_talking_sequences_stay_in_range_blink_and_differ(anny_model):

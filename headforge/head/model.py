@@ -256,7 +256,10 @@ class HeadModel(torch.nn.Module):
         eye_left_pose: torch.Tensor | None = None,
         eye_right_pose: torch.Tensor | None = None,
         translation: torch.Tensor | None = None,
+        offsets: torch.Tensor | None = None,
     ) -> HeadOutput:
+        """``offsets`` (B or 1, V, 3): canonical per-vertex displacements added after the blend
+        shapes and before skinning (NHA's geometry network output)."""
         poses = [root_pose, neck_pose, jaw_pose, eye_left_pose, eye_right_pose]
         given = dict(shape=shape, expression=expression, translation=translation, **dict(zip(POSE_ARGS, poses)))
         widths = dict(shape=self.n_shape, expression=self.n_expr, translation=3, **{k: 3 for k in POSE_ARGS})
@@ -267,6 +270,10 @@ class HeadModel(torch.nn.Module):
                             expression if expression is not None else zeros(self.n_expr)], dim=1)
         coeffs = coeffs.to(dtype)
         shaped = lbs_fn.blend_shapes(coeffs, self.blenddirs, self.v_template)
+        if offsets is not None:
+            if offsets.ndim != 3 or offsets.shape[1:] != shaped.shape[1:] or offsets.shape[0] not in (1, B):
+                raise HeadforgeError(f"offsets must have shape (B or 1, {shaped.shape[1]}, 3), got {tuple(offsets.shape)}")
+            shaped = shaped + offsets.to(dtype)
         rest_joints = lbs_fn.blend_shapes(coeffs, self.j_blenddirs, self.j_template)
         pose = torch.stack([p if p is not None else zeros(3) for p in poses], dim=1).to(dtype)
         if self.joint_limits:

@@ -1,0 +1,1 @@
+"""Neural Head Avatars (Grassal et al. 2022) on headforge."""

@@ -1,0 +1,135 @@
+"""Export a trained NHA: baked UV texture, neutral mesh and per-frame meshes (OBJ/PLY/GLB via
+trimesh), and videos for reenactment (driving expressions/poses from another dataset) and
+novel views (orbit)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from headforge.errors import HeadforgeError
+from headforge.render import mesh
+from headforge.render.camera import Cameras
+
+FORMATS = ("obj", "ply", "glb")
+
+
+@torch.no_grad()
+def bake_texture(avatar, size: int = 512) -> np.ndarray:
+    """(size, size, 3) float texture: T evaluated at every texel's surface point (static
+    texture, zero mouth condition); texels outside the UV islands are dilated from inside."""
+    import cv2
+
+    faces_uv = avatar.uv_corners  # (F, 3, 2)
+    F = len(faces_uv)
+    verts = torch.cat([faces_uv[..., 0:1] * size - 0.5, (1 - faces_uv[..., 1:2]) * size - 0.5,
+                       torch.ones(F, 3, 1)], -1).reshape(1, F * 3, 3)
+    tri = torch.arange(F * 3).reshape(F, 3)
+    cams = Cameras(torch.eye(3)[None], torch.eye(3)[None], torch.zeros(1, 3), size, size)
+    frags = mesh.rasterize(cams, verts, tri)
+    hit = frags.face_id[0] >= 0
+    fid = frags.face_id[0][hit]
+    b = frags.bary[0][hit]
+    faces = avatar.head.faces
+    canon = (avatar.positions[faces[fid]] * b[..., None]).sum(1)
+    uv = (faces_uv[fid] * b[..., None]).sum(1)
+    colour = torch.cat([avatar.texture_net(c, u, torch.zeros(len(c), avatar.texture_net.cond_dim),
+                                           torch.zeros(len(c), dtype=torch.bool))
+                        for c, u in zip(canon.split(65536), uv.split(65536))])
+    image = np.zeros((size, size, 3), np.float32)
+    image[hit.numpy()] = colour.numpy()
+    # dilate into the gutters so bilinear lookups at island borders stay clean
+    filled = hit.numpy().astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    for _ in range(8):
+        grown, grown_mask = cv2.dilate(image, kernel), cv2.dilate(filled, kernel)
+        new = (grown_mask > 0) & (filled == 0)
+        image[new] = grown[new]
+        filled = grown_mask
+    return image
+
+
+def _trimesh(vertices: np.ndarray, avatar, texture: np.ndarray | None):
+    import trimesh
+    from PIL import Image
+
+    faces = avatar.head.faces.numpy()
+    if texture is None:
+        return trimesh.Trimesh(vertices, faces, process=False)
+    # UV seams: one output vertex per (vertex, uv) corner pair
+    uv_faces = avatar.head.uv_faces.numpy()
+    pairs = np.stack([faces.ravel(), uv_faces.ravel()], 1)
+    uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    new_faces = inverse.reshape(-1, 3)
+    uvs = avatar.head.uvs.numpy()[uniq[:, 1]]
+    image = Image.fromarray((np.clip(texture, 0, 1) * 255).round().astype(np.uint8))
+    visual = trimesh.visual.TextureVisuals(uv=uvs, image=image)
+    return trimesh.Trimesh(vertices[uniq[:, 0]], new_faces, visual=visual, process=False)
+
+
+@torch.no_grad()
+def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None = None, texture_size: int = 512) -> list[Path]:
+    """Write ``avatar.<fmt>`` (neutral: zero expression and pose, canonical axes, metres) with its
+    baked texture, and ``frames/<index>.<fmt>`` for the given tracked frames (canonical head axes,
+    posed)."""
+    if fmt not in FORMATS:
+        raise HeadforgeError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    output.mkdir(parents=True, exist_ok=True)
+    texture = bake_texture(avatar, texture_size)
+    written = []
+    offsets = avatar.offsets(torch.zeros(1, 3))
+    neutral = avatar.head(shape=avatar.shape, offsets=offsets).vertices[0].numpy()
+
+    def save(vertices: np.ndarray, path: Path) -> None:
+        m = _trimesh(vertices, avatar, texture if fmt != "ply" else None)
+        if fmt == "ply":  # vertex colours from the texture at each vertex's first UV
+            from headforge.render.mesh import texture as sample
+
+            uv = torch.zeros(avatar.head.num_vertices, 2)
+            uv[avatar.head.faces.reshape(-1)] = avatar.uv_corners.reshape(-1, 2)
+            rgb = sample(uv[None, None], torch.from_numpy(texture)[None])[0, 0].numpy()
+            m.visual.vertex_colors = np.concatenate([rgb, np.ones((len(rgb), 1))], 1) * 255
+        tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+        m.export(tmp)
+        tmp.replace(path)
+        written.append(path)
+
+    save(neutral, output / f"avatar.{fmt}")
+    if frames:
+        (output / "frames").mkdir(exist_ok=True)
+        T = avatar.frames["translation"].shape[0]
+        bad = [f for f in frames if not 0 <= f < T]
+        if bad:
+            raise HeadforgeError(f"frame {bad[0]} is outside the run's {T} frames")
+        for f in frames:
+            params = avatar.frame_params(torch.tensor([f]))
+            params = {**params, "translation": torch.zeros_like(params["translation"])}
+            verts, _, _ = avatar.pose(params)
+            save(verts[0].numpy() * np.array([1.0, -1.0, -1.0]), output / "frames" / f"{f:05d}.{fmt}")
+    from headforge.render.io import write_png
+
+    write_png(output / "texture.png", texture)
+    return written
+
+
+@torch.no_grad()
+def render_frames(avatar, K: torch.Tensor, resolution: int, params_seq: dict[str, torch.Tensor], orbit: bool = False,
+                  orbit_degrees: float = 30.0):
+    """Yield (R, R, 3) frames for a sequence of frame parameters (reenactment), optionally with
+    the camera orbiting the head (novel views)."""
+    from scipy.spatial.transform import Rotation
+
+    T = params_seq["translation"].shape[0]
+    for t in range(T):
+        params = {k: v[t:t + 1] for k, v in params_seq.items()}
+        if orbit:
+            yaw = orbit_degrees * math.sin(2 * math.pi * t / max(T, 1))
+            R = torch.tensor(Rotation.from_euler("y", yaw, degrees=True).as_matrix(), dtype=torch.float32)
+            params["root_pose"] = torch.tensor(
+                (Rotation.from_matrix(R.numpy()) * Rotation.from_rotvec(params["root_pose"][0].numpy())).as_rotvec(),
+                dtype=torch.float32)[None]
+        cams = Cameras(K[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+        yield avatar.render(params, cams, background=1.0).rgb[0].clamp(0, 1).numpy()

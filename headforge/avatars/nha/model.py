@@ -1,0 +1,168 @@
+"""The Neural Head Avatar: template head model + geometry network G + texture network T +
+per-frame tracking parameters, rendered with headforge's differentiable rasterizer.
+
+Coordinates: canonical head space (metres, y up, face +z); camera OpenCV at the origin with
+x_cam = diag(1, -1, -1) x + translation (the dataset convention).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from headforge.avatars.nha.networks import GeometryNet, TextureNet
+from headforge.head.model import HeadModel, HeadModelData
+from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head
+from headforge.render import mesh
+from headforge.render.camera import Cameras
+
+FLIP = torch.tensor([1.0, -1.0, -1.0])
+FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
+LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
+# Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
+LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
+                     "eyeballs": 50.0, "mouth_interior": 20.0}
+
+
+def build_template(data: HeadModelData, subdivide: bool = True) -> HeadModelData:
+    """NHA's template (App. A.1): 4-way subdivision, lower neck removed."""
+    if subdivide:
+        data = subdivide_head(data)
+    if "lower_neck" in data.regions:
+        data = remove_region(data, "lower_neck")
+    return data
+
+
+@dataclass
+class Rendered:
+    rgb: torch.Tensor  # (B, H, W, 3) antialiased, composited on ``background``
+    coverage: torch.Tensor  # (B, H, W) antialiased silhouette in [0, 1]
+    fragments: mesh.Fragments
+    vertices: torch.Tensor  # (B, V, 3) camera space
+    landmarks: torch.Tensor | None  # (B, L, 3) camera space
+    offsets: torch.Tensor  # (B, V, 3) canonical offsets
+
+
+class NeuralHeadAvatar(nn.Module):
+    def __init__(self, template: HeadModelData, tracking: dict[str, torch.Tensor], config):
+        super().__init__()
+        self.head = HeadModel(template, joint_limits=False)
+        V = self.head.num_vertices
+        rest = torch.as_tensor(template.v_template, dtype=torch.float32)
+        centre, scale = rest.mean(0), (rest - rest.mean(0)).abs().max()
+        self.register_buffer("positions", (rest - centre) / scale)  # template in [-1, 1]
+        self.shape = nn.Parameter(tracking["shape"].float().clone()[:, : self.head.n_shape])
+        self.frames = nn.ParameterDict({k: nn.Parameter(tracking[k].float().clone()) for k in FRAME_KEYS})
+        self.geometry_net = GeometryNet(V, config.embed_dim, config.geo_layers, config.geo_width, cond_dim=3,
+                                        max_offset=config.max_offset)
+        self.texture_net = TextureNet(config.tex_grid, config.tex_channels, config.tex_layers, config.tex_width,
+                                      cond_dim=3 + len(LIP_PAIRS))
+        faces = self.head.faces
+        region = lambda name: self.head.region(name) if name in self.head.region_names else torch.zeros(0, dtype=torch.long)  # noqa: E731
+        # dynamic (neck-pose dependent) offsets only on the neck, faded smoothly into the head
+        neck = torch.zeros(V, 3)
+        neck[region("neck")] = 1.0
+        self.register_buffer("neck_fade", laplacian_smooth(neck, faces, 0.5, iterations=10)[:, :1])
+        lap = torch.full((V,), 1.0)
+        for name, w in LAPLACIAN_WEIGHTS.items():
+            lap[region(name)] = w
+        self.register_buffer("laplacian_weight", lap)
+        mouth = torch.zeros(V, dtype=torch.bool)
+        mouth[region("lips")] = True
+        mouth[region("mouth_interior")] = True
+        self.register_buffer("mouth_faces", mouth[faces].any(1))
+        face = torch.zeros(V)
+        face[region("face")] = 1.0
+        self.register_buffer("face_vertices", face)
+        scalp = torch.zeros(V, dtype=torch.bool)
+        scalp[region("scalp")] = True
+        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        edges = torch.unique(torch.sort(edges, 1).values, dim=0)
+        self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
+        self.register_buffer("uv_corners", self.head.face_corner_uvs())
+        boundary = _boundary_vertices(faces.numpy(), V)
+        ring = np.intersect1d(boundary, region("neck").numpy())
+        self.register_buffer("neck_ring", torch.as_tensor(ring if len(ring) else boundary, dtype=torch.long))
+        self.has_lips = self.head.num_landmarks == 478
+
+    # ---- geometry ------------------------------------------------------------------------
+    def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3): static offsets everywhere, neck-pose dependent ones on the neck."""
+        B = neck_pose.shape[0]
+        static = self.geometry_net(self.positions, torch.zeros(1, 3, dtype=neck_pose.dtype))
+        if B == 0:
+            return static
+        dynamic = self.geometry_net(self.positions, neck_pose)
+        return static + self.neck_fade * (dynamic - static)
+
+    def frame_params(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {k: self.frames[k][idx] for k in FRAME_KEYS}
+
+    def pose(self, params: dict[str, torch.Tensor]):
+        """Camera-space vertices (B, V, 3), landmarks (B, L, 3), offsets (B, V, 3)."""
+        B = params["translation"].shape[0]
+        offsets = self.offsets(params["neck_pose"])
+        out = self.head(shape=self.shape.expand(B, -1), offsets=offsets,
+                        **{k: params[k] for k in FRAME_KEYS if k != "translation"})
+        flip = FLIP.to(out.vertices)
+        verts = out.vertices * flip + params["translation"][:, None]
+        lmk = None if out.landmarks is None else out.landmarks * flip + params["translation"][:, None]
+        return verts, lmk, offsets
+
+    def mouth_condition(self, params: dict[str, torch.Tensor], landmarks: torch.Tensor | None) -> torch.Tensor:
+        """(B, 3 + 3): jaw rotation and inner-lip distances (in cm) -- NHA's mouth conditions."""
+        if landmarks is not None and self.has_lips:
+            d = torch.stack([(landmarks[:, a] - landmarks[:, b]).norm(dim=-1) for a, b in LIP_PAIRS], -1) * 100
+        else:
+            d = torch.zeros(params["jaw_pose"].shape[0], len(LIP_PAIRS), dtype=params["jaw_pose"].dtype)
+        return torch.cat([params["jaw_pose"], d], -1)
+
+    # ---- rendering -----------------------------------------------------------------------
+    def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,
+               texture: bool = True) -> Rendered:
+        verts, lmk, offsets = self.pose(params)
+        faces = self.head.faces
+        frags = mesh.rasterize(cameras, verts.detach(), faces)
+        bary = mesh.barycentrics(frags, cameras, verts, faces)
+        B, H, W = frags.face_id.shape
+        hit = frags.face_id >= 0
+        rgb = torch.full((B, H, W, 3), background, dtype=verts.dtype)
+        if texture and hit.any():
+            fid = frags.face_id[hit]
+            b = bary[hit]  # (N, 3)
+            canon = (self.positions[faces[fid]] * b[..., None]).sum(1)
+            uv = (self.uv_corners[fid] * b[..., None]).sum(1)
+            cond = self.mouth_condition(params, lmk)
+            batch = torch.nonzero(hit)[:, 0]
+            colour = self.texture_net(canon, uv, cond[batch], self.mouth_faces[fid])
+            rgb = rgb.index_put(tuple(torch.nonzero(hit).T), colour)
+        ones = hit[..., None].to(verts.dtype)
+        out = mesh.antialias(torch.cat([rgb, ones], -1), frags, cameras, verts, faces)
+        return Rendered(out[..., :3], out[..., 3].clamp(0, 1), frags, verts, lmk, offsets)
+
+    # ---- regularisers ----------------------------------------------------------------------
+    def laplacian_term(self, offsets: torch.Tensor) -> torch.Tensor:
+        """Region-weighted L1 of the uniform Laplacian of the offsets (= the Laplacian of the
+        offset mesh minus that of the template, as in NHA's E_reg,lapl)."""
+        smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
+        return ((smoothed - offsets).abs().sum(-1) * self.laplacian_weight).mean()
+
+    def edge_term(self, vertices: torch.Tensor) -> torch.Tensor:
+        """NHA's scalp edge-length term, relative to the template: scalp edges stretched beyond
+        1.5x their template length (large hair offsets) are penalised by the excess ratio."""
+        if len(self.scalp_edges) == 0:
+            return vertices.new_zeros(())
+        a, b = self.scalp_edges[:, 0], self.scalp_edges[:, 1]
+        e = (vertices[:, a] - vertices[:, b]).norm(dim=-1)
+        e0 = (self.head.v_template[a] - self.head.v_template[b]).norm(dim=-1).clamp(min=1e-6)
+        return torch.relu(e / e0 - 1.5).mean()
+
+
+def _boundary_vertices(faces: np.ndarray, V: int) -> np.ndarray:
+    """Vertices on open boundary edges (the neck cut after removing the lower neck)."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    return np.unique(uniq[counts == 1].ravel())

@@ -1,0 +1,420 @@
+"""``headforge fit nha DATASET -o RUN``: optimise a Neural Head Avatar from a tracked dataset.
+
+Schedule (NHA Sec. 3.2 / App. A.3): geometry initialisation (landmarks, silhouette, regularisers;
+G and the per-frame parameters), texture initialisation (photometric, geometry frozen), then
+joint optimisation. Adam for the networks, SGD (momentum) for the per-frame parameters.
+
+Terms we can and cannot have here (no pretrained weights): NHA's normal term needs a normal
+predictor and its perceptual term VGG -- both absent, so the normal term is off and a weight-free
+SSIM term stands in for the perceptual one. The semantic term becomes silhouette agreement with
+the foreground mask above the neck cut (we have no face parser).
+
+RUN/ holds config.json, checkpoint.safetensors + state.json (every ``checkpoint_every``
+iterations; a killed run resumes from it), losses.csv, val.csv, progress.png, val/*.png,
+metrics.json.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from headforge.errors import HeadforgeError
+
+RUN_FORMAT = "headforge-run"
+
+
+@dataclass
+class NHAConfig:
+    resolution: int = 256
+    subdivide: bool = True
+    embed_dim: int = 32
+    geo_layers: int = 6
+    geo_width: int = 128
+    max_offset: float = 0.08
+    tex_grid: int = 256
+    tex_channels: int = 64
+    tex_layers: int = 8
+    tex_width: int = 256
+    batch: int = 2
+    geometry_iters: int = 2000
+    texture_iters: int = 2000
+    joint_iters: int = 6000
+    lr_geometry: float = 3e-4
+    lr_texture: float = 5e-4
+    lr_grid: float = 1e-2
+    lr_frames: float = 1e-3
+    lr_shape: float = 1e-4
+    w_landmarks: float = 1.0
+    w_silhouette: float = 2.0
+    w_rgb: float = 1.0
+    w_ssim: float = 0.2
+    w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
+    w_offset_face: float = 0.01  # squared face offsets in mm^2
+    w_surface: float = 1.0
+    w_edge: float = 10.0
+    w_prior: float = 1e-3
+    checkpoint_every: int = 200
+    val_every: int = 500
+    val_frames: int = 4
+    tto_steps: int = 100
+    seed: int = 0
+
+    @classmethod
+    def quick(cls) -> "NHAConfig":
+        return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
+                   tex_width=96, geometry_iters=300, texture_iters=300, joint_iters=600, val_every=300, tto_steps=40)
+
+    @classmethod
+    def paper(cls) -> "NHAConfig":
+        return cls(resolution=512)
+
+    @property
+    def total_iters(self) -> int:
+        return self.geometry_iters + self.texture_iters + self.joint_iters
+
+
+class FrameData:
+    """A dataset split held in memory at the training resolution (uint8 images/masks)."""
+
+    def __init__(self, root: Path, split: str, resolution: int):
+        from headforge.data.dataset import HeadDataset
+
+        ds = HeadDataset(root, split)
+        if len(ds) == 0:
+            raise HeadforgeError(f"{root} has no valid {split} frames")
+        self.meta = ds.meta
+        scale = resolution / ds.meta["resolution"]
+        imgs, masks, lmks, idx = [], [], [], []
+        for i in range(len(ds)):
+            item = ds[i]
+            x = torch.cat([item["image"], item["mask"][..., None]], -1).permute(2, 0, 1)[None]
+            x = torch.nn.functional.interpolate(x, size=(resolution, resolution), mode="area")[0].permute(1, 2, 0)
+            imgs.append((x[..., :3] * 255).round().to(torch.uint8))
+            masks.append((x[..., 3] * 255).round().to(torch.uint8))
+            lmks.append((item["landmarks"] + 0.5) * scale - 0.5)
+            idx.append(item["index"])
+        self.images, self.masks = torch.stack(imgs), torch.stack(masks)
+        self.landmarks = torch.stack(lmks).float()
+        self.index = torch.tensor(idx)
+        K = torch.tensor(ds.meta["intrinsics"], dtype=torch.float32)
+        K[0, 0] *= scale
+        K[1, 1] *= scale
+        K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5  # pixel centres at integers in both sizes
+        self.K = K
+        self.resolution = resolution
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def batch(self, rows: torch.Tensor) -> dict:
+        return {"image": self.images[rows].float() / 255, "mask": self.masks[rows].float() / 255,
+                "landmarks": self.landmarks[rows], "index": self.index[rows]}
+
+
+def _cameras(K: torch.Tensor, B: int, res: int):
+    from headforge.render.camera import Cameras
+
+    return Cameras(K.expand(B, 3, 3), torch.eye(3).expand(B, 3, 3), torch.zeros(B, 3), res, res)
+
+
+def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
+    """(B, H, W) bool: pixels above the neck cut (the mean row of the projected neck ring);
+    below it the foreground mask shows neck and shoulders the avatar does not model."""
+    ring = verts[:, avatar.neck_ring]
+    y = (ring[..., 1] / ring[..., 2]) * K[1, 1] + K[1, 2]
+    cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
+    rows = torch.arange(res, dtype=verts.dtype)[None, :, None]
+    return (rows < cut[:, None, None]).expand(-1, -1, res)
+
+
+def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str) -> dict[str, torch.Tensor]:
+    from headforge.metrics.image import ssim
+
+    res = config.resolution
+    B = len(batch["index"])
+    params = avatar.frame_params(batch["index"])
+    r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=stage != "geometry")
+    area = _above_neck(avatar, r.vertices, K, res)
+    gt_mask = batch["mask"] * area
+    out = {}
+    # landmarks (L1, pixels / resolution), detections that exist only
+    lmk = batch["landmarks"]
+    if r.landmarks is not None:
+        proj = r.landmarks[..., :2] / r.landmarks[..., 2:] * K[0, 0] + K[:2, 2]
+        n = min(proj.shape[1], lmk.shape[1])
+        ok = torch.isfinite(lmk[:, :n]).all(-1)
+        diff = (proj[:, :n] - torch.nan_to_num(lmk[:, :n])).abs().sum(-1)
+        out["landmarks"] = config.w_landmarks * (diff * ok).sum() / ok.sum().clamp(min=1) / res * 10
+    out["silhouette"] = config.w_silhouette * ((r.coverage - gt_mask).abs() * area).mean()
+    if stage != "geometry":
+        inter = (r.coverage.detach() > 0.5) & (batch["mask"] > 0.5) & area
+        w = inter[..., None].float()
+        out["rgb"] = config.w_rgb * ((r.rgb - batch["image"]).abs() * w).sum() / w.sum().clamp(min=1) / 3
+        gt_comp = batch["image"] * w + (1 - w)
+        pred_comp = r.rgb * w + (1 - w)
+        out["ssim"] = config.w_ssim * (1 - ssim(pred_comp, gt_comp).mean())
+    if stage != "texture":
+        mm = 1000 * r.offsets  # regularisers in millimetres
+        out["laplacian"] = config.w_laplacian * avatar.laplacian_term(mm)
+        out["offset_face"] = config.w_offset_face * ((mm ** 2).sum(-1) * avatar.face_vertices).mean()
+        out["edge"] = config.w_edge * avatar.edge_term(r.offsets + avatar.head.v_template)
+        if B > 1:  # surface consistency between the frames of the batch (random pairs)
+            out["surface"] = config.w_surface * (r.offsets[0] - r.offsets[1]).abs().mean()
+        out["prior"] = config.w_prior * (params["expression"].pow(2).mean() + avatar.shape.pow(2).mean()
+                                         + 10 * sum(params[k].pow(2).mean() for k in ("neck_pose", "jaw_pose")))
+    return out
+
+
+def _optimisers(avatar, config: NHAConfig):
+    # SGD per frame parameter group, scaled so one step moves translation by ~0.1 mm and
+    # rotations by ~1e-3 rad at typical gradients (momentum would keep moving frames that
+    # are not in the batch).
+    scale = {"translation": 0.01, "root_pose": 0.1, "neck_pose": 0.1, "jaw_pose": 0.1, "eye_left_pose": 0.1,
+             "eye_right_pose": 0.1, "expression": 1.0}
+    frames = torch.optim.SGD([{"params": [avatar.frames[k]], "lr": config.lr_frames * scale[k]} for k in scale])
+    geometry = torch.optim.Adam([{"params": avatar.geometry_net.parameters(), "lr": config.lr_geometry},
+                                 {"params": [avatar.shape], "lr": config.lr_shape}])
+    texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n != "grid"],
+                                 "lr": config.lr_texture},
+                                {"params": [avatar.texture_net.grid], "lr": config.lr_grid}])
+    return {"frames": frames, "geometry": geometry, "texture": texture}
+
+
+def stage_of(it: int, config: NHAConfig) -> str:
+    if it < config.geometry_iters:
+        return "geometry"
+    if it < config.geometry_iters + config.texture_iters:
+        return "texture"
+    return "joint"
+
+
+STAGE_OPTIMISERS = {"geometry": ("frames", "geometry"), "texture": ("texture",), "joint": ("frames", "geometry", "texture")}
+
+
+def build_avatar(dataset: Path, config: NHAConfig):
+    from safetensors.torch import load_file
+
+    from headforge.avatars.nha.model import NeuralHeadAvatar, build_template
+    from headforge.data.dataset import read_meta
+    from headforge.head import load_data
+
+    meta = read_meta(dataset)
+    data = load_data(meta["model"], None)
+    tracking = load_file(str(dataset / "tracking.safetensors"))
+    return NeuralHeadAvatar(build_template(data, config.subdivide), tracking, config), meta
+
+
+def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
+    from safetensors.torch import save_file
+
+    tmp = run / "checkpoint.tmp.safetensors"
+    save_file({k: v.detach().contiguous() for k, v in avatar.state_dict().items()}, str(tmp))
+    opt_tmp = run / "optimisers.tmp.pt"
+    torch.save({k: o.state_dict() for k, o in optimisers.items()}, opt_tmp)
+    tmp.replace(run / "checkpoint.safetensors")
+    opt_tmp.replace(run / "optimisers.pt")
+    (run / "state.json").write_text(json.dumps(state))
+
+
+def load_run(run: Path):
+    """(avatar, config, meta) of a finished or checkpointed run folder."""
+    from safetensors.torch import load_file
+
+    cfg_path = run / "config.json"
+    if not cfg_path.is_file():
+        raise HeadforgeError(f"{run} is not a headforge run (config.json missing)")
+    info = json.loads(cfg_path.read_text())
+    if info.get("format") != RUN_FORMAT or info.get("method") != "nha":
+        raise HeadforgeError(f"{run} is not an NHA run (method {info.get('method')!r})")
+    config = NHAConfig(**info["config"])
+    avatar, meta = build_avatar(Path(info["dataset"]), config)
+    ckpt = run / "checkpoint.safetensors"
+    if not ckpt.is_file():
+        raise HeadforgeError(f"{ckpt} is missing")
+    avatar.load_state_dict(load_file(str(ckpt)))
+    return avatar, config, meta
+
+
+def test_time_optimise(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, steps: int) -> None:
+    """NHA's protocol on held-out frames: networks frozen, per-frame expression/pose/translation
+    optimised against the frames (photometric + landmarks + silhouette)."""
+    avatar.requires_grad_(False)
+    for p in avatar.frames.parameters():
+        p.requires_grad_(True)
+    opt = torch.optim.Adam([{"params": [p], "lr": 2e-4 if k == "translation" else 2e-3}
+                            for k, p in avatar.frames.items()])
+    rows_all = torch.arange(len(data))
+    for _ in range(steps):
+        for rows in rows_all.split(config.batch):
+            batch = data.batch(rows)
+            loss = sum(v for k, v in losses(avatar, batch, K, config, "joint").items()
+                       if k in ("rgb", "ssim", "landmarks", "silhouette"))
+            opt.zero_grad()
+            loss.backward()
+            # only the rows in this batch have gradients; Adam leaves the others untouched
+            opt.step()
+    avatar.requires_grad_(True)
+
+
+@torch.no_grad()
+def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_dir: Path | None = None,
+             max_images: int = 6) -> dict:
+    """PSNR / SSIM / L1 on the frames, both images composited on white with the GT mask above
+    the neck cut (the avatar has no shoulders) -- full-image metrics as PointAvatar reports."""
+    from headforge.metrics.image import l1, psnr, ssim
+    from headforge.render.io import write_png
+
+    vals = {"psnr": [], "ssim": [], "l1": []}
+    saved = 0
+    for rows in torch.arange(len(data)).split(config.batch):
+        batch = data.batch(rows)
+        params = avatar.frame_params(batch["index"])
+        r = avatar.render(params, _cameras(K, len(rows), config.resolution), background=1.0)
+        area = _above_neck(avatar, r.vertices, K, config.resolution)
+        m = (batch["mask"] * area)[..., None]
+        gt = batch["image"] * m + (1 - m)
+        pred = r.rgb * area[..., None] + (1 - area[..., None].float())
+        for b in range(len(rows)):
+            vals["psnr"].append(psnr(pred[b:b + 1], gt[b:b + 1]).item())
+            vals["ssim"].append(ssim(pred[b:b + 1], gt[b:b + 1]).item())
+            vals["l1"].append(l1(pred[b:b + 1], gt[b:b + 1]).item())
+            if out_dir is not None and saved < max_images:
+                write_png(out_dir / f"{int(batch['index'][b]):05d}.png", torch.cat([gt[b], pred[b]], 1).clamp(0, 1))
+                saved += 1
+    return {k: float(np.mean(v)) for k, v in vals.items()} | {"frames": len(data)}
+
+
+def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, progress=None) -> dict:
+    """Train; resumes from RUN's checkpoint when its config matches."""
+    dataset, run = Path(dataset).resolve(), Path(run)
+    torch.manual_seed(config.seed)
+    info = {"format": RUN_FORMAT, "method": "nha", "dataset": str(dataset), "config": asdict(config)}
+    resume = (run / "config.json").is_file() and (run / "state.json").is_file()
+    if resume:
+        previous = json.loads((run / "config.json").read_text())
+        if previous != json.loads(json.dumps(info)):
+            raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
+    avatar, meta = build_avatar(dataset, config)  # reads and checks the dataset first
+    train = FrameData(dataset, "train", config.resolution)
+    val_all = FrameData(dataset, "val", config.resolution)
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "config.json").write_text(json.dumps(info, indent=1))
+    (run / "val").mkdir(exist_ok=True)
+    K = train.K
+    optimisers = _optimisers(avatar, config)
+    state = {"iteration": 0, "seconds": 0.0}
+    if resume:
+        from safetensors.torch import load_file
+
+        avatar.load_state_dict(load_file(str(run / "checkpoint.safetensors")))
+        for k, sd in torch.load(run / "optimisers.pt", weights_only=False).items():
+            optimisers[k].load_state_dict(sd)
+        state = json.loads((run / "state.json").read_text())
+        log(f"resuming {run} at iteration {state['iteration']}")
+    else:
+        for name in ("losses.csv", "val.csv"):
+            (run / name).unlink(missing_ok=True)
+    gen = torch.Generator().manual_seed(config.seed + state["iteration"])
+    start = time.perf_counter() - state["seconds"]
+    loss_file = (run / "losses.csv").open("a")
+    it = state["iteration"]
+    while it < config.total_iters:
+        stage = stage_of(it, config)
+        rows = torch.randperm(len(train), generator=gen)[: config.batch]
+        terms = losses(avatar, train.batch(rows), K, config, stage)
+        total = sum(terms.values())
+        for o in optimisers.values():
+            o.zero_grad()
+        total.backward()
+        for name in STAGE_OPTIMISERS[stage]:
+            optimisers[name].step()
+        it += 1
+        loss_file.write(f"{it},{stage},{time.perf_counter() - start:.1f},{total.item():.5f},"
+                        + ",".join(f"{k}={v.item():.5f}" for k, v in terms.items()) + "\n")
+        if progress:
+            progress()
+        if it % config.val_every == 0 or it == config.total_iters:
+            sub = torch.linspace(0, len(val_all) - 1, min(config.val_frames, len(val_all))).long()
+            scores = evaluate(avatar, _subset(val_all, sub), K, config, run / "val")
+            with (run / "val.csv").open("a") as f:
+                f.write(f"{it},{time.perf_counter() - start:.1f},{scores['psnr']:.4f},{scores['ssim']:.4f}\n")
+            log(f"iteration {it} ({stage}): loss {total.item():.4f}, val PSNR {scores['psnr']:.2f} dB (before test-time fitting)")
+        if it % config.checkpoint_every == 0 or it == config.total_iters:
+            loss_file.flush()
+            save_checkpoint(run, avatar, optimisers, {"iteration": it, "seconds": time.perf_counter() - start})
+    loss_file.close()
+    train_seconds = time.perf_counter() - start
+    _plot(run)
+    log(f"test-time optimisation of the {len(val_all)} validation frames ({config.tto_steps} steps)")
+    test_time_optimise(avatar, val_all, K, config, config.tto_steps)
+    scores = evaluate(avatar, val_all, K, config, run / "val", max_images=8)
+    if (dataset / "gt" / "geometry.safetensors").is_file():
+        export_geometry(avatar, dataset, run / "geometry.safetensors")
+    metrics = {"train_minutes": round(train_seconds / 60, 2), "val_psnr": round(scores["psnr"], 3),
+               "val_ssim": round(scores["ssim"], 4), "val_l1": round(scores["l1"], 4), "val_frames": scores["frames"],
+               "iterations": config.total_iters, "resolution": config.resolution,
+               "lpips": "n/a (no pretrained weights)", "dataset": str(dataset)}
+    (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    return metrics
+
+
+@torch.no_grad()
+def export_geometry(avatar, dataset: Path, path: Path) -> None:
+    """Camera-space meshes of the avatar at the frames that carry ground truth in a synth
+    dataset (the ``headforge eval`` geometry format)."""
+    from safetensors.numpy import load_file, save_file
+
+    frames = load_file(str(dataset / "gt" / "geometry.safetensors"))["frames"]
+    T = avatar.frames["translation"].shape[0]
+    frames = frames[frames < T]
+    verts = torch.cat([avatar.pose(avatar.frame_params(torch.from_numpy(chunk)))[0]
+                       for chunk in np.array_split(frames, max(1, len(frames) // 8))])
+    head = avatar.head
+    face = np.zeros(head.num_vertices, bool)
+    face[head.region("face").numpy()] = True
+    head_mask = np.ones(head.num_vertices, bool)
+    if "neck" in head.region_names:
+        head_mask[head.region("neck").numpy()] = False
+    save_file({"frames": frames.astype(np.int64), "vertices": verts.numpy().astype(np.float32),
+               "faces": head.faces.numpy().astype(np.int64), "face_vertices": face, "head_vertices": head_mask},
+              str(path))
+
+
+def _subset(data: FrameData, rows: torch.Tensor) -> FrameData:
+    sub = object.__new__(FrameData)
+    sub.__dict__.update(data.__dict__)
+    sub.images, sub.masks, sub.landmarks, sub.index = data.images[rows], data.masks[rows], data.landmarks[rows], data.index[rows]
+    return sub
+
+
+def _plot(run: Path) -> None:
+    """progress.png: training loss and validation PSNR against wall-clock minutes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [line.split(",") for line in (run / "losses.csv").read_text().splitlines() if line]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    if rows:
+        t = np.array([float(r[2]) for r in rows]) / 60
+        loss = np.array([float(r[3]) for r in rows])
+        k = max(1, len(loss) // 100)
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        axes[0].plot(t[len(t) - len(smooth):], smooth)
+        axes[0].set(xlabel="minutes", ylabel="training loss", yscale="log")
+    if (run / "val.csv").is_file():
+        val = np.array([[float(v) for v in line.split(",")] for line in (run / "val.csv").read_text().splitlines() if line])
+        if len(val):
+            axes[1].plot(val[:, 1] / 60, val[:, 2], marker="o")
+    axes[1].set(xlabel="minutes", ylabel="validation PSNR (dB, before test-time fitting)")
+    fig.tight_layout()
+    fig.savefig(run / "progress.png", dpi=100)
+    plt.close(fig)
+

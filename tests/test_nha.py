@@ -1,0 +1,129 @@
+"""Neural Head Avatars: networks, the avatar model, training with resume, export and rendering."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from typer.testing import CliRunner
+
+from headforge.avatars.nha.networks import FiLMSiren, GeometryNet, MappingNetwork, TextureNet
+from headforge.errors import HeadforgeError
+
+
+def test_film_siren_shapes_and_conditioning():
+    torch.manual_seed(0)
+    mapping, siren = MappingNetwork(3, 4, 32), FiLMSiren(5, 4, 32)
+    gamma, beta = mapping(torch.randn(2, 3))
+    assert gamma.shape == beta.shape == (2, 4, 32)
+    assert (gamma - 1).abs().max() < 0.5  # starts near the plain SIREN
+    out = siren(torch.rand(2, 7, 5) * 2 - 1, gamma, beta)
+    assert out.shape == (2, 7, 32) and out.abs().max() <= 1
+    g = GeometryNet(50, embed_dim=8, layers=3, width=16, max_offset=0.01)
+    off = g(torch.rand(50, 3) * 2 - 1, torch.zeros(3, 3))
+    assert off.shape == (3, 50, 3) and off.abs().max() <= 0.01
+    assert torch.allclose(off[0], off[1])  # same condition, same offsets
+    tex = TextureNet(grid_size=16, grid_channels=4, layers=3, width=16, cond_dim=6)
+    mouth = torch.tensor([False, True, False, True])
+    rgb = tex(torch.rand(4, 3), torch.rand(4, 2), torch.randn(4, 6), mouth)
+    assert rgb.shape == (4, 3) and ((rgb >= 0) & (rgb <= 1)).all()
+    # the mouth condition changes mouth pixels only
+    rgb2 = tex(torch.rand(4, 3) * 0 + rgb.new_tensor(0.3), torch.rand(4, 2) * 0 + 0.5, torch.randn(4, 6), mouth)
+    rgb3 = tex(torch.rand(4, 3) * 0 + rgb.new_tensor(0.3), torch.rand(4, 2) * 0 + 0.5, torch.randn(4, 6), mouth)
+    assert torch.allclose(rgb2[~mouth], rgb3[~mouth]) and not torch.allclose(rgb2[mouth], rgb3[mouth])
+
+
+@pytest.fixture(scope="module")
+def tiny_config():
+    from headforge.avatars.nha.trainer import NHAConfig
+
+    config = NHAConfig.quick()
+    config.resolution = 96
+    config.geometry_iters, config.texture_iters, config.joint_iters = 2, 2, 2
+    config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps = 2, 3, 2, 1
+    config.tex_grid, config.geo_width, config.tex_width = 32, 32, 32
+    return config
+
+
+def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
+    from headforge.avatars.nha.trainer import build_avatar
+
+    avatar, _ = build_avatar(synth_bench[0] / "subject_00", tiny_config)
+    with torch.no_grad():
+        torch.nn.init.normal_(avatar.geometry_net.head.weight, std=0.1)
+        torch.nn.init.normal_(avatar.geometry_net.mapping.out.weight, std=0.05)  # a trained conditioning
+        a = avatar.offsets(torch.zeros(1, 3))
+        b = avatar.offsets(torch.tensor([[0.3, 0.2, 0.0]]))
+    moved = (a - b).norm(dim=-1)[0]
+    far = avatar.neck_fade[:, 0] == 0
+    assert far.sum() > 100 and moved[far].max() < 1e-7
+    assert moved[~far].max() > 1e-5
+    assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
+
+
+def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path):
+    from headforge.avatars.nha.trainer import fit, load_run
+    from headforge.cli import app
+
+    dataset = synth_bench[0] / "subject_00"
+    run = tmp_path / "run"
+    calls = {"n": 0}
+
+    def interrupt():
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt)
+    assert json.loads((run / "state.json").read_text())["iteration"] == 2
+    logs = []
+    metrics = fit(dataset, run, tiny_config, log=logs.append)
+    assert any("resuming" in m for m in logs)
+    assert json.loads((run / "state.json").read_text())["iteration"] == 6
+    assert metrics["val_frames"] >= 1 and 5 < metrics["val_psnr"] < 60 and 0 < metrics["val_ssim"] <= 1
+    for name in ("progress.png", "metrics.json", "losses.csv", "checkpoint.safetensors", "geometry.safetensors"):
+        assert (run / name).is_file(), name
+    assert list((run / "val").glob("*.png"))
+    # the exported geometry is what headforge eval reads
+    from headforge.metrics.benchmark import evaluate_geometry
+
+    result = evaluate_geometry(run, dataset, samples=500)
+    assert result["frames"] >= 1 and np.isfinite(result["mean"]["hausdorff_full_mm"])
+    # another config in the same folder is refused
+    other = type(tiny_config)(**{**tiny_config.__dict__, "seed": 1})
+    with pytest.raises(HeadforgeError, match="other settings"):
+        fit(dataset, run, other, log=lambda m: None)
+    avatar, _, _ = load_run(run)
+    runner = CliRunner()
+    res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / "obj"), "--frames", "0-1", "--texture-size", "64"])
+    assert res.exit_code == 0, res.output
+    m = trimesh.load(tmp_path / "obj" / "avatar.obj", process=False)
+    assert len(m.faces) == len(avatar.head.faces) and (tmp_path / "obj" / "texture.png").is_file()
+    assert (tmp_path / "obj" / "frames" / "00001.obj").is_file()
+    for fmt in ("ply", "glb"):
+        res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / fmt), "--format", fmt, "--texture-size", "32"])
+        assert res.exit_code == 0, res.output
+        assert (tmp_path / fmt / f"avatar.{fmt}").stat().st_size > 1000
+    res = runner.invoke(app, ["render", "avatar", str(run), "-o", str(tmp_path / "re.mp4"), "--driving", str(dataset),
+                              "--orbit", "--max-frames", "3"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "re.mp4").stat().st_size > 1000
+
+
+def test_nha_bad_inputs(tmp_path, tiny_config):
+    from headforge.avatars.nha.trainer import fit, load_run
+    from headforge.cli import app
+
+    with pytest.raises(HeadforgeError, match="not a headforge run"):
+        load_run(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps({"format": "headforge-run", "method": "point"}))
+    with pytest.raises(HeadforgeError, match="not an NHA run"):
+        load_run(tmp_path)
+    with pytest.raises(HeadforgeError, match="not a headforge dataset"):
+        fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
+    res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])
+    assert res.exit_code != 0 and "--preset" in str(res.exception)
