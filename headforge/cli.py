@@ -249,11 +249,9 @@ def render_avatar(run: Path = typer.Argument(..., help="a run folder of headforg
         seq = {k: avatar.frames[k].detach()[rows] for k in FRAME_KEYS}
     if max_frames is not None:
         seq = {k: v[:max_frames] for k, v in seq.items()}
-    K = torch.tensor(meta["intrinsics"], dtype=torch.float32)
-    scale = config.resolution / meta["resolution"]
-    K[0, 0] *= scale
-    K[1, 1] *= scale
-    K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+    from headforge.render.camera import scale_intrinsics
+
+    K = scale_intrinsics(torch.tensor(meta["intrinsics"], dtype=torch.float32), config.resolution / meta["resolution"])
     T = seq["translation"].shape[0]
     write_mp4(output, render_frames(avatar, K, config.resolution, seq, orbit=orbit), fps=fps, total=T,
               description=f"rendering {T} frames")
@@ -339,30 +337,79 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
 
 @app.command("demo")
 def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
-         video: Optional[Path] = typer.Option(None, help="also track this video (first 150 frames)")) -> None:
-    """The main job on the embedded default: build open-head, fit it to a bundled photo, render a
-    turntable through both render paths, optionally track a video; writes a report folder
-    (PNGs, MP4s, metrics.json, metrics.md)."""
+         video: Optional[Path] = typer.Option(None, help="use this video (first 300 frames) instead of a synthetic subject"),
+         iterations: int = typer.Option(900, help="NHA training iterations (the quick preset's schedule, scaled)")) -> None:
+    """The main job end to end on the embedded default: synth one small subject (or track
+    --video) -> fit a Neural Head Avatar (quick) -> render val frames, a novel-view orbit and
+    the turntable -> evaluate (images; geometry against GT for the synthetic subject). Writes a
+    report folder (PNGs, MP4s, metrics.json, metrics.md)."""
     import shutil
 
     import matplotlib.cbook
+    import torch
 
+    from headforge.avatars.nha.export import export_run, render_frames
+    from headforge.avatars.nha.model import FRAME_KEYS
+    from headforge.avatars.nha.trainer import NHAConfig, fit
     from headforge.head.fit import fit_image, overlay
     from headforge.render.io import write_mp4, write_png
     from headforge.render.turntable import turntable_frames
 
+    if iterations < 3:
+        raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
+    start_all = time.perf_counter()
     tmp = output.with_name(output.name + ".partial")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
+    tmp.mkdir(parents=True, exist_ok=True)  # kept between attempts: synth/track/fit resume
     head = _load_model("open-head", None)
+    metrics = {"model": head.name}
+    with _Bars() as bars:
+        if video is None:
+            from headforge.data.synthetic import SynthConfig, synthesize
+
+            _progress("1/4 synthesising one talking subject with ground truth (headforge synth)")
+            synth_cfg = SynthConfig(subjects=1, train_frames=120, val_frames=40, resolution=256, gt_every=4,
+                                    novel_yaws=(25.0,))
+            if not (tmp / "synth" / "benchmark.json").is_file():
+                synthesize(tmp / "synth", synth_cfg, log=_progress, progress_factory=bars.factory)
+            dataset = tmp / "synth" / "subject_00"
+        else:
+            from headforge.track.pipeline import TrackOptions, track_video
+
+            _progress(f"1/4 tracking the first 300 frames of {video.name} (headforge track)")
+            if not (tmp / "track" / "dataset.json").is_file():
+                track_video(video, tmp / "track", TrackOptions(max_frames=300), log=_progress,
+                            progress_factory=bars.factory)
+            dataset = tmp / "track"
+        metrics.update({f"track_{k}": v for k, v in json.loads((dataset / "metrics.json").read_text()).items()
+                        if k in ("landmark_median_px", "frames_valid", "frames_total")})
+        _progress(f"2/4 fitting a Neural Head Avatar ({iterations} iterations, quick preset)")
+        config = NHAConfig.quick()
+        total = config.total_iters
+        config.geometry_iters = max(1, round(iterations * config.geometry_iters / total))
+        config.texture_iters = max(1, round(iterations * config.texture_iters / total))
+        config.joint_iters = max(1, iterations - config.geometry_iters - config.texture_iters)
+        config.val_every = max(1, iterations // 4)
+        config.tto_steps = 10
+        nha = fit(dataset, tmp / "nha", config, log=_progress, progress=bars.factory("training", config.total_iters))
+        metrics.update({f"nha_{k}": v for k, v in nha.items() if k != "dataset"})
+    _progress("3/4 rendering: validation frames, a novel-view orbit, the exported mesh, the head model turntable")
+    from headforge.avatars.nha.trainer import load_run
+
+    avatar, config, meta = load_run(tmp / "nha")
+    from headforge.render.camera import scale_intrinsics
+
+    K = scale_intrinsics(torch.tensor(meta["intrinsics"], dtype=torch.float32), config.resolution / meta["resolution"])
+    rows = [r["index"] for r in meta["frames"] if r["valid"] and r["split"] == "val"]
+    seq = {k: avatar.frames[k].detach()[rows] for k in FRAME_KEYS}
+    write_mp4(tmp / "avatar_val.mp4", render_frames(avatar, K, config.resolution, seq), total=len(rows),
+              description="avatar, validation frames")
+    write_mp4(tmp / "avatar_orbit.mp4", render_frames(avatar, K, config.resolution, seq, orbit=True),
+              total=len(rows), description="avatar, orbit")
+    export_run(avatar, tmp / "export", "obj", texture_size=256)
     photo = Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))
     pixels = _read_image(photo)
-    _progress("fitting open-head to grace_hopper.jpg (matplotlib's sample photo)")
-    fit = fit_image(head, pixels)
-    write_png(tmp / "fit_grace_hopper.png", overlay(pixels, fit, head.faces.numpy()))
-    _progress("rendering a turntable: mesh path | point path")
-    start = time.perf_counter()
+    fit_photo = fit_image(head, pixels)
+    write_png(tmp / "fit_grace_hopper.png", overlay(pixels, fit_photo, head.faces.numpy()))
     first = {}
 
     def frames():
@@ -370,26 +417,27 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
             first.setdefault("frame", frame)
             yield frame
 
-    write_mp4(tmp / "turntable.mp4", frames(), total=60, description="turntable")
+    write_mp4(tmp / "turntable.mp4", frames(), total=60, description="head model turntable")
     write_png(tmp / "turntable.png", first["frame"])
-    metrics = {"model": head.name, "vertices": head.num_vertices, "landmarks": head.num_landmarks,
-               "landmark_embedding_median_px": round(head.meta["landmarks"]["landmark_median_px"], 3),
-               "fit_grace_hopper_median_px": round(fit.median_px, 3),
-               "turntable_fps": round(60 / (time.perf_counter() - start), 2)}
-    if video is not None:
-        from headforge.track.pipeline import TrackOptions, track_video
+    metrics["fit_grace_hopper_median_px"] = round(fit_photo.median_px, 3)
+    if video is None:
+        from headforge.metrics.benchmark import evaluate_geometry, write_geometry_report
 
-        _progress(f"tracking the first 150 frames of {video.name}")
-        tracked = track_video(video, tmp / "track", TrackOptions(max_frames=150), log=_progress)
-        metrics.update({f"track_{k}": v for k, v in tracked.items() if isinstance(v, (int, float))})
+        _progress("4/4 evaluating geometry against the ground truth: tracked head model vs avatar")
+        for name, pred in (("tracked", dataset), ("nha", tmp / "nha")):
+            result = evaluate_geometry(pred, dataset, samples=5000)
+            write_geometry_report(result, tmp / f"eval_{name}")
+            for k in ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm"):
+                metrics[f"{name}_{k}"] = round(result["mean"][k], 3)
+    metrics["demo_minutes"] = round((time.perf_counter() - start_all) / 60, 2)
     (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
     table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
     (tmp / "metrics.md").write_text("\n".join(table) + "\n")
     if output.exists():
         shutil.rmtree(output)
     tmp.replace(output)
-    files = ", ".join(sorted(p.name for p in output.iterdir()))
-    console.print(f"report written to {output}/ ({files})")
+    console.print(f"report written to {output}/ (metrics.md, avatar_val.mp4, avatar_orbit.mp4, nha/progress.png, "
+                  f"export/avatar.obj, turntable.mp4, ...)")
     print(json.dumps(metrics))
 
 

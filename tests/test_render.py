@@ -247,3 +247,15 @@ def test_constant_sh_gives_uniform_irradiance_and_matches_lambert_first_band():
                                torch.full((100, 3), 0.7, dtype=torch.float64))
     lit = shading.lambert(n, torch.ones(100, 3, dtype=torch.float64), (0.0, 0.0, 1.0), ambient=0.0)
     torch.testing.assert_close(lit[:, 0], n[:, 2].clamp(min=0))
+
+
+def test_scale_intrinsics_keeps_pixel_centres():
+    from headforge.render.camera import scale_intrinsics
+
+    K = torch.tensor([[900.0, 0, 255.5], [0, 900.0, 255.5], [0, 0, 1]])
+    small = scale_intrinsics(K, 0.5)
+    point = torch.tensor([0.03, -0.02, 0.8])
+    big_px = (K @ point)[:2] / point[2]
+    small_px = (small @ point)[:2] / point[2]
+    assert torch.allclose(small_px, (big_px + 0.5) * 0.5 - 0.5, atol=1e-4)
+    assert K[0, 0] == 900.0  # the input is not modified

@@ -634,23 +634,15 @@ def synthesize(output: str | Path, config: SynthConfig, log=print, progress_fact
     import shutil
     import time
 
+    from headforge.paths import open_partial
     from headforge.render.io import write_png
     from headforge.track.pipeline import TrackOptions, track_video
 
     config.validate()
     start = time.perf_counter()
     output = Path(output)
-    work = output.with_name(output.name + ".partial")
     settings = asdict(config)
-    if work.exists():
-        previous = json.loads((work / "settings.json").read_text()) if (work / "settings.json").is_file() else None
-        if previous != json.loads(json.dumps(settings)):
-            log(f"{work} holds a run with other settings: starting over")
-            shutil.rmtree(work)
-        else:
-            log(f"resuming the unfinished run in {work}")
-    work.mkdir(parents=True, exist_ok=True)
-    (work / "settings.json").write_text(json.dumps(settings))
+    work = open_partial(output, settings, log)
     bar = progress_factory or (lambda description, total: None)
     model = load_anny()
     summary, dirs = [], []

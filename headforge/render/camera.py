@@ -167,3 +167,12 @@ class Cameras:
                                 dtype=torch.float64)
         c2w = torch.tensor([f["transform_matrix"] for f in frames], dtype=torch.float64)
         return cls.from_opengl_c2w(c2w, K, width, height)
+
+
+def scale_intrinsics(K: torch.Tensor, scale: float) -> torch.Tensor:
+    """(3, 3) intrinsics for an image resized by ``scale`` (pixel centres at integers in both)."""
+    K = K.clone()
+    K[0, 0] *= scale
+    K[1, 1] *= scale
+    K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+    return K

@@ -26,6 +26,7 @@ from headforge.data import dataset as ds
 from headforge.data.preprocess import ClipDetections, Segmenter, crop, crop_windows, detect_clip, transform_points
 from headforge.data.video import image_files, iter_frames, video_info
 from headforge.errors import HeadforgeError
+from headforge.paths import open_partial
 from headforge.head.landmarks import LandmarkSpec
 from headforge.head.model import HeadModel
 from headforge.track.tracker import FLIP, FRAME_PARAMS, TrackerConfig, project, track_landmarks
@@ -70,18 +71,9 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     start = time.perf_counter()
     video, output = Path(video), Path(output)
     info = video_info(video)
-    work = output.with_name(output.name + ".partial")
     settings = {"video": str(video.resolve()), "size": video.stat().st_size, **asdict(options)}
     settings.pop("overlay")
-    if work.exists():
-        previous = json.loads((work / "settings.json").read_text()) if (work / "settings.json").is_file() else None
-        if previous != settings:
-            log(f"{work} holds a run with other settings: starting over")
-            shutil.rmtree(work)
-        else:
-            log(f"resuming the unfinished run in {work}")
-    work.mkdir(parents=True, exist_ok=True)
-    (work / "settings.json").write_text(json.dumps(settings))
+    work = open_partial(output, settings, log)
     bar = progress_factory or (lambda description, total: None)
 
     # 1. landmarks

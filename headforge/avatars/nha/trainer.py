@@ -51,7 +51,7 @@ class NHAConfig:
     lr_frames: float = 1e-3
     lr_shape: float = 1e-4
     w_landmarks: float = 1.0
-    w_silhouette: float = 2.0
+    w_silhouette: float = 10.0
     w_rgb: float = 1.0
     w_ssim: float = 0.2
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
@@ -68,7 +68,7 @@ class NHAConfig:
     @classmethod
     def quick(cls) -> "NHAConfig":
         return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
-                   tex_width=96, geometry_iters=300, texture_iters=300, joint_iters=600, val_every=300, tto_steps=40)
+                   tex_width=96, geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, tto_steps=15)
 
     @classmethod
     def paper(cls) -> "NHAConfig":
@@ -102,11 +102,9 @@ class FrameData:
         self.images, self.masks = torch.stack(imgs), torch.stack(masks)
         self.landmarks = torch.stack(lmks).float()
         self.index = torch.tensor(idx)
-        K = torch.tensor(ds.meta["intrinsics"], dtype=torch.float32)
-        K[0, 0] *= scale
-        K[1, 1] *= scale
-        K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5  # pixel centres at integers in both sizes
-        self.K = K
+        from headforge.render.camera import scale_intrinsics
+
+        self.K = scale_intrinsics(torch.tensor(ds.meta["intrinsics"], dtype=torch.float32), scale)
         self.resolution = resolution
 
     def __len__(self) -> int:
@@ -251,7 +249,7 @@ def test_time_optimise(avatar, data: FrameData, K: torch.Tensor, config: NHAConf
                             for k, p in avatar.frames.items()])
     rows_all = torch.arange(len(data))
     for _ in range(steps):
-        for rows in rows_all.split(config.batch):
+        for rows in rows_all.split(4 * config.batch):
             batch = data.batch(rows)
             loss = sum(v for k, v in losses(avatar, batch, K, config, "joint").items()
                        if k in ("rgb", "ssim", "landmarks", "silhouette"))
