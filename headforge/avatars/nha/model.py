@@ -87,6 +87,10 @@ class NeuralHeadAvatar(nn.Module):
         ring = np.intersect1d(boundary, region("neck").numpy())
         self.register_buffer("neck_ring", torch.as_tensor(ring if len(ring) else boundary, dtype=torch.long))
         self.has_lips = self.head.num_landmarks == 478
+        outline = torch.ones(V, dtype=torch.bool)  # vertices that can form the outer silhouette
+        for name in ("eyeballs", "mouth_interior", "eye_cavities"):
+            outline[region(name)] = False
+        self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0])
 
     # ---- geometry ------------------------------------------------------------------------
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
@@ -109,7 +113,13 @@ class NeuralHeadAvatar(nn.Module):
                         **{k: params[k] for k in FRAME_KEYS if k != "translation"})
         flip = FLIP.to(out.vertices)
         verts = out.vertices * flip + params["translation"][:, None]
-        lmk = None if out.landmarks is None else out.landmarks * flip + params["translation"][:, None]
+        lmk = None
+        if out.landmarks is not None:
+            # Landmarks steer the tracking parameters, not G: detected landmarks are noisy from frame
+            # to frame, and through the shared network they drowned the silhouette's hair signal.
+            lmk_out = self.head(shape=self.shape.expand(B, -1), offsets=offsets.detach(),
+                                **{k: params[k] for k in FRAME_KEYS if k != "translation"})
+            lmk = lmk_out.landmarks * flip + params["translation"][:, None]
         return verts, lmk, offsets
 
     def mouth_condition(self, params: dict[str, torch.Tensor], landmarks: torch.Tensor | None) -> torch.Tensor:
@@ -143,12 +153,25 @@ class NeuralHeadAvatar(nn.Module):
         out = mesh.antialias(torch.cat([rgb, ones], -1), frags, cameras, verts, faces)
         return Rendered(out[..., :3], out[..., 3].clamp(0, 1), frags, verts, lmk, offsets)
 
+    def contour_points(self, vertices: torch.Tensor, K: torch.Tensor, max_cos: float = 0.25) -> list[torch.Tensor]:
+        """Per frame, the projected pixels (N_b, 2) of vertices on the silhouette rim: their
+        normal is nearly perpendicular to the viewing ray (|cos| < ``max_cos``)."""
+        from headforge.head.topology import vertex_normals
+
+        v = vertices[:, self.outline_vertices]
+        n = vertex_normals(vertices, self.head.faces)[:, self.outline_vertices]
+        cos = (n * torch.nn.functional.normalize(v, dim=-1)).sum(-1).detach()
+        px = v[..., :2] / v[..., 2:] * K[0, 0] + K[:2, 2]
+        return [px[b][cos[b].abs() < max_cos] for b in range(len(v))]
+
     # ---- regularisers ----------------------------------------------------------------------
     def laplacian_term(self, offsets: torch.Tensor) -> torch.Tensor:
-        """Region-weighted L1 of the uniform Laplacian of the offsets (= the Laplacian of the
-        offset mesh minus that of the template, as in NHA's E_reg,lapl)."""
+        """Region-weighted squared uniform Laplacian of the offsets (= the Laplacian of the offset
+        mesh minus that of the template, NHA's E_reg,lapl). Squared rather than NHA's L1: an L1
+        subgradient keeps its full size on an already smooth face and, through the shared
+        network, drowned the silhouette signal that grows hair."""
         smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
-        return ((smoothed - offsets).abs().sum(-1) * self.laplacian_weight).mean()
+        return ((smoothed - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
 
     def edge_term(self, vertices: torch.Tensor) -> torch.Tensor:
         """NHA's scalp edge-length term, relative to the template: scalp edges stretched beyond
