@@ -90,7 +90,7 @@ class NeuralHeadAvatar(nn.Module):
         outline = torch.ones(V, dtype=torch.bool)  # vertices that can form the outer silhouette
         for name in ("eyeballs", "mouth_interior", "eye_cavities"):
             outline[region(name)] = False
-        self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0])
+        self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0], persistent=False)  # derived
 
     # ---- geometry ------------------------------------------------------------------------
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
