@@ -41,10 +41,7 @@ def main() -> None:
             track_video(CLIP, dataset, TrackOptions(overlay=False))
     config = NHAConfig.quick()
     if args.iterations:
-        total = config.total_iters
-        config.geometry_iters = round(args.iterations * config.geometry_iters / total)
-        config.texture_iters = round(args.iterations * config.texture_iters / total)
-        config.joint_iters = args.iterations - config.geometry_iters - config.texture_iters
+        config.scale_schedule(args.iterations)
     metrics = fit(dataset, args.run, config, log=lambda m: print(m, file=sys.stderr))
     avatar, config, _ = load_run(args.run)
     data = FrameData(dataset, "val", config.resolution)

@@ -201,12 +201,7 @@ def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headf
             raise HeadforgeError(f"--resolution must be >= 64, got {resolution}")
         config.resolution = resolution
     if iterations is not None:
-        if iterations < 3:
-            raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
-        total = config.total_iters
-        config.geometry_iters = max(1, round(iterations * config.geometry_iters / total))
-        config.texture_iters = max(1, round(iterations * config.texture_iters / total))
-        config.joint_iters = max(1, iterations - config.geometry_iters - config.texture_iters)
+        config.scale_schedule(iterations)
     with _Bars() as bars:
         metrics = fit(dataset, output, config, log=_progress, progress=bars.factory("training", config.total_iters))
     console.print(f"run written to {output}/ (checkpoint, progress.png, val/, metrics.json)")
@@ -355,8 +350,7 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
     from headforge.render.io import write_mp4, write_png
     from headforge.render.turntable import turntable_frames
 
-    if iterations < 3:
-        raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
+    NHAConfig.quick().scale_schedule(iterations)  # checks --iterations before any work
     start_all = time.perf_counter()
     tmp = output.with_name(output.name + ".partial")
     tmp.mkdir(parents=True, exist_ok=True)  # kept between attempts: synth/track/fit resume
@@ -384,10 +378,7 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
                         if k in ("landmark_median_px", "frames_valid", "frames_total")})
         _progress(f"2/4 fitting a Neural Head Avatar ({iterations} iterations, quick preset)")
         config = NHAConfig.quick()
-        total = config.total_iters
-        config.geometry_iters = max(1, round(iterations * config.geometry_iters / total))
-        config.texture_iters = max(1, round(iterations * config.texture_iters / total))
-        config.joint_iters = max(1, iterations - config.geometry_iters - config.texture_iters)
+        config.scale_schedule(iterations)
         config.val_every = max(1, iterations // 4)
         config.tto_steps = 10
         nha = fit(dataset, tmp / "nha", config, log=_progress, progress=bars.factory("training", config.total_iters))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +101,6 @@ class Subject:
     cloth_colour: list[float]
     background: list[float]
     seed: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 SKIN_TONES = [(0.91, 0.73, 0.63), (0.80, 0.60, 0.48), (0.62, 0.43, 0.32), (0.42, 0.28, 0.20), (0.95, 0.80, 0.70)]
@@ -291,8 +290,8 @@ def _overlay_colours(subject: Subject, rest_hf: np.ndarray, labels: np.ndarray, 
     return np.clip(out, 0, 1)
 
 
-def _hair_sdf(style: str, points: np.ndarray, dist: np.ndarray, scalp_w: np.ndarray, head_centre: np.ndarray,
-              rng) -> np.ndarray:
+def _hair_sdf(style: str, points: np.ndarray, dist: np.ndarray, scalp_w: np.ndarray,
+              head_centre: np.ndarray) -> np.ndarray:
     """Signed distance (approx.) of a hair volume at ``points`` (N, 3, headforge axes).
 
     dist: signed distance to the body surface; scalp_w: in [0, 1], 1 where the nearest
@@ -339,7 +338,7 @@ def build_hair(style: str, vertices: np.ndarray, faces: np.ndarray, scalp: np.nd
     grid = np.stack(np.meshgrid(*[lo[k] + voxel * np.arange(shape[k]) for k in range(3)], indexing="ij"), -1).reshape(-1, 3)
     dist, nearest = cKDTree(samples).query(grid, workers=-1)
     sign = np.sign(((grid - samples[nearest]) * normals[nearest]).sum(1))
-    sdf = _hair_sdf(style, grid, dist * sign, sample_w[nearest], head_centre, rng).reshape(*shape)
+    sdf = _hair_sdf(style, grid, dist * sign, sample_w[nearest], head_centre).reshape(*shape)
     sdf = np.pad(sdf, 1, constant_values=1.0)  # empty border: the surface closes inside the grid
     verts, tris, _, _ = marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3)
     verts = verts + lo - voxel

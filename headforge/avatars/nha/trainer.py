@@ -75,6 +75,15 @@ class NHAConfig:
     def paper(cls) -> "NHAConfig":
         return cls(resolution=512)
 
+    def scale_schedule(self, iterations: int) -> None:
+        """Rescale the three stages to ``iterations`` in total, keeping their proportions."""
+        if iterations < 3:
+            raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
+        total = self.total_iters
+        self.geometry_iters = max(1, round(iterations * self.geometry_iters / total))
+        self.texture_iters = max(1, round(iterations * self.texture_iters / total))
+        self.joint_iters = max(1, iterations - self.geometry_iters - self.texture_iters)
+
     @property
     def total_iters(self) -> int:
         return self.geometry_iters + self.texture_iters + self.joint_iters
