@@ -2,8 +2,9 @@
 
 Steps, each checkpointed in ``DATASET.partial/`` so an interrupted run resumes:
   1. detections.npz   MediaPipe landmarks of every kept frame (tracking mode)
-  2. tracking.safetensors   the head model fitted to the landmarks of the whole clip
-  3. frames/, masks/  crops (and selfie-segmentation masks) written by a thread pool
+  2. frames/, masks/  crops (and selfie-segmentation masks) written by a thread pool
+  3. tracking.safetensors   the head model fitted to the landmarks of the whole clip (then,
+     with ``photometric``, refined against the crops with the renderer)
   4. overlay.mp4      streamed frame by frame
   5. dataset.json, metrics.json, transforms.json; then the folder is renamed
 """
@@ -29,6 +30,7 @@ from headforge.errors import HeadforgeError
 from headforge.paths import open_partial
 from headforge.head.landmarks import LandmarkSpec
 from headforge.head.model import HeadModel
+from headforge.track.photometric import PhotometricConfig, load_target
 from headforge.track.tracker import FLIP, FRAME_PARAMS, TrackerConfig, project, track_landmarks
 
 
@@ -45,6 +47,7 @@ class TrackOptions:
     focal: float | None = None  # known focal length in crop pixels; estimated when None
     crop: str = "face"  # "face": a smooth window around the face; "full": the whole (square) frame
     masks: str | None = None  # folder of foreground masks named like the frames (instead of selfie segmentation)
+    photometric: bool = False  # refine the landmark fit against the crops with the renderer
 
     def validate(self) -> None:
         if self.resolution < 64:
@@ -101,36 +104,9 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     res = options.resolution
     lmk = np.stack([transform_points(det.landmarks[t], windows[t], res) for t in range(T)])
 
-    # 2. tracking
     data = load_data(options.model, options.flame_dir)
-    track_path = work / "tracking.safetensors"
-    track_start = time.perf_counter()
-    if track_path.is_file():
-        tracked = load_file(str(track_path))
-        K = np.asarray(json.loads((work / "camera.json").read_text())["K"])
-    else:
-        config = TrackerConfig.paper() if options.preset == "paper" else TrackerConfig.quick()
-        config.focal = options.focal
-        advance = bar("tracking", config.rigid_steps + config.steps)
-        result = track_landmarks(HeadModel(data, landmarks_only=True), lmk, det.valid, res, config,
-                                 progress=advance and (lambda loss: advance()))
-        # "projected" holds the model's landmarks at the detections they match (NaN elsewhere)
-        projected = np.full_like(lmk, np.nan)
-        projected[:, result.spec.detection_ids] = result.projected
-        tracked = {"shape": result.shape, **result.frames, "landmarks": torch.tensor(lmk, dtype=torch.float32),
-                   "valid": torch.tensor(det.valid), "projected": torch.tensor(projected, dtype=torch.float32)}
-        K = result.K
-        (work / "camera.json").write_text(json.dumps({"K": K.tolist()}))
-        save_file({k: v.contiguous() for k, v in tracked.items()}, str(work / "tracking.tmp.safetensors"))
-        (work / "tracking.tmp.safetensors").replace(track_path)
-    fit_seconds = time.perf_counter() - track_start
-    errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)  # NaN where not matched
-    errors[~det.valid] = np.nan
-    head = HeadModel(data)
-    spec = LandmarkSpec.for_model(head.num_landmarks)
-    inner = spec.detection_ids[~spec.contour]
 
-    # 3. crops and masks, written by a thread pool
+    # 2. crops and masks, written by a thread pool
     write_start = time.perf_counter()
     (work / "frames").mkdir(exist_ok=True)
     (work / "masks").mkdir(exist_ok=True)
@@ -161,6 +137,45 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     if options.masks is None:
         segment.close()
     write_seconds = time.perf_counter() - write_start
+
+    # 3. tracking
+    track_path = work / "tracking.safetensors"
+    track_start = time.perf_counter()
+    if track_path.is_file():
+        tracked = load_file(str(track_path))
+        K = np.asarray(json.loads((work / "camera.json").read_text())["K"])
+    else:
+        config = TrackerConfig.paper() if options.preset == "paper" else TrackerConfig.quick()
+        config.focal = options.focal
+        target = None
+        if options.photometric:
+            photo = PhotometricConfig.paper() if options.preset == "paper" else PhotometricConfig.quick()
+            photo.size = min(photo.size, res)
+            names = [f"{t:05d}.png" for t in range(T)]
+            target = load_target([work / "frames" / n for n in names], [work / "masks" / n for n in names],
+                                 det.valid, HeadModel(data), photo)
+        advance = bar("tracking", config.rigid_steps + config.steps + (target.config.steps if target else 0))
+        result = track_landmarks(HeadModel(data, landmarks_only=True), lmk, det.valid, res, config,
+                                 progress=advance and (lambda loss: advance()), photometric=target)
+        # "projected" holds the model's landmarks at the detections they match (NaN elsewhere)
+        projected = np.full_like(lmk, np.nan)
+        projected[:, result.spec.detection_ids] = result.projected
+        tracked = {"shape": result.shape, **result.frames, "landmarks": torch.tensor(lmk, dtype=torch.float32),
+                   "valid": torch.tensor(det.valid), "projected": torch.tensor(projected, dtype=torch.float32)}
+        K = result.K
+        if result.photometric_preview is not None:
+            from headforge.render.io import write_png
+
+            write_png(work / "photometric.png", torch.from_numpy(result.photometric_preview).float() / 255)
+        (work / "camera.json").write_text(json.dumps({"K": K.tolist(), "photometric_l1": result.photometric_l1}))
+        save_file({k: v.contiguous() for k, v in tracked.items()}, str(work / "tracking.tmp.safetensors"))
+        (work / "tracking.tmp.safetensors").replace(track_path)
+    fit_seconds = time.perf_counter() - track_start
+    errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)  # NaN where not matched
+    errors[~det.valid] = np.nan
+    head = HeadModel(data)
+    spec = LandmarkSpec.for_model(head.num_landmarks)
+    inner = spec.detection_ids[~spec.contour]
 
     # 4. overlay video, streamed (decoding and cropping again is cheaper than holding the clip)
     if options.overlay:
@@ -196,6 +211,9 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
                "landmark_median_px_all": round(float(np.nanmedian(errors)), 3),
                "landmark_error_excludes": "face-contour points (MediaPipe's 36 face-oval / iBUG's 17 jaw points)",
                "resolution": res, "focal_px": round(float(K[0][0]), 2)}
+    photometric_l1 = json.loads((work / "camera.json").read_text()).get("photometric_l1")
+    if photometric_l1 is not None:
+        metrics["photometric_l1"] = round(photometric_l1, 4)
     (work / "metrics.json").write_text(json.dumps(metrics, indent=2))
     if output.exists():
         shutil.rmtree(output)

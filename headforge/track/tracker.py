@@ -1,4 +1,4 @@
-"""Analysis-by-synthesis landmark tracking of a whole clip at once.
+"""Analysis-by-synthesis tracking of a whole clip at once.
 
 Unknowns: identity shape shared by the clip; per frame: expression, root rotation and
 translation (rigid head pose), neck, jaw and eye rotations; one focal length. Camera: OpenCV
@@ -9,6 +9,9 @@ Energy (NHA Sec. 3.1, App. A): L1 landmark reprojection error in inter-ocular un
 down-weighted) + NHA's eye-lid distance term (so blinks are tracked) + priors on shape,
 expression and joint rotations + temporal smoothness of every per-frame parameter. Frames
 without landmarks have no data term: smoothness carries them.
+
+Stages: rigid pose (+ focal) -> everything on landmarks -> optionally a photometric refinement
+with the renderer (:mod:`headforge.track.photometric`), which keeps the landmark energy.
 """
 
 from __future__ import annotations
@@ -58,20 +61,117 @@ class TrackResult:
     projected: np.ndarray  # (T, L, 2) model landmarks in crop pixels
     errors: np.ndarray  # (T, L) px distance to the matching detections (NaN on invalid frames)
     spec: LandmarkSpec  # which detection each model landmark matches
+    photometric_l1: float | None = None  # mean colour error of the photometric stage (None: not run)
+    photometric_preview: np.ndarray | None = None  # crop | render | error rows (uint8), see photometric.refine
 
     def median_px(self, exclude_oval: bool = True) -> float:
         cols = ~self.spec.contour if exclude_oval else np.ones(len(self.spec.contour), bool)
         return float(np.nanmedian(self.errors[:, cols]))
 
 
+class ClipParameters:
+    """The unknowns of a clip (leaf tensors with gradients) and how they drive a head model.
+
+    shape (1, n_shape) — the first ``n_shape`` identity components, the rest stay 0;
+    expression logits or values (T, E); poses (T, 3) axis-angle; translation (T, 3) metres in
+    camera space; ``log_focal`` scalar (crop pixels).
+    """
+
+    def __init__(self, model: HeadModel, T: int, n_shape: int, translation: np.ndarray, focal: float,
+                 optimise_focal: bool, resolution: int):
+        self.n_model_shape, self.resolution = model.n_shape, resolution
+        self.bounded = model.meta.get("expression_range") == [0.0, 1.0]
+        self.log_focal = torch.tensor(float(np.log(focal)), dtype=torch.float32, requires_grad=optimise_focal)
+        self.shape = torch.zeros(1, n_shape, requires_grad=True)
+        self.expr = torch.full((T, model.n_expr), -4.0 if self.bounded else 0.0, requires_grad=True)
+        self.poses = {k: torch.zeros(T, 3, requires_grad=True) for k in FRAME_PARAMS[1:6]}
+        self.trans = torch.tensor(translation, dtype=torch.float32, requires_grad=True)
+
+    @property
+    def rigid(self) -> list[torch.Tensor]:
+        return [self.poses["root_pose"], self.trans] + ([self.log_focal] if self.log_focal.requires_grad else [])
+
+    @property
+    def everything(self) -> list[torch.Tensor]:
+        return self.rigid + [self.shape, self.expr] + [self.poses[k] for k in FRAME_PARAMS[2:6]]
+
+    def expression(self, idx=slice(None)) -> torch.Tensor:
+        return torch.sigmoid(self.expr[idx]) if self.bounded else self.expr[idx]
+
+    def full_shape(self) -> torch.Tensor:
+        """(1, S) all identity coefficients of the model."""
+        return torch.cat([self.shape, torch.zeros(1, self.n_model_shape - self.shape.shape[1])], 1)
+
+    def model_inputs(self, idx=slice(None)) -> dict[str, torch.Tensor]:
+        """HeadModel keyword arguments for frames ``idx`` (root pose included, no translation)."""
+        expression = self.expression(idx)
+        return {"shape": self.full_shape().expand(len(expression), -1), "expression": expression,
+                **{k: self.poses[k][idx] for k in FRAME_PARAMS[1:6]}}
+
+    def to_camera(self, points: torch.Tensor, idx=slice(None)) -> torch.Tensor:
+        """(B, N, 3) posed canonical points of frames ``idx`` -> camera space (metres)."""
+        return points @ FLIP.T + self.trans[idx][:, None]
+
+    def K(self) -> torch.Tensor:
+        """(3, 3) intrinsics of the ``resolution``^2 crop (differentiable in the focal)."""
+        c = (self.resolution - 1) / 2
+        f = self.log_focal.exp()
+        zero = torch.tensor(0.0)
+        return torch.stack([torch.stack([f, zero, torch.tensor(c)]), torch.stack([zero, f, torch.tensor(c)]),
+                            torch.tensor([0.0, 0.0, 1.0])])
+
+    def result_frames(self) -> dict[str, torch.Tensor]:
+        return {"expression": self.expression().detach(), **{k: v.detach() for k, v in self.poses.items()},
+                "translation": self.trans.detach()}
+
+
+class LandmarkEnergy:
+    """The landmark terms of the clip energy (see the module docstring) for a landmarks-only model."""
+
+    def __init__(self, model: HeadModel, params: ClipParameters, landmarks: np.ndarray, valid: np.ndarray,
+                 spec: LandmarkSpec, config: TrackerConfig, inter_ocular_px: float):
+        self.model, self.params, self.spec, self.config = model, params, spec, config
+        self.target = torch.tensor(np.nan_to_num(landmarks), dtype=torch.float32)
+        self.valid = torch.tensor(valid)
+        weight = torch.ones(len(spec.detection_ids))
+        weight[torch.from_numpy(spec.contour)] = config.oval_weight
+        self.frame_w = self.valid.float()[:, None] * weight  # (T, L)
+        self.scale = 1.0 / max(inter_ocular_px, 1.0)
+
+    def project(self) -> torch.Tensor:
+        """(T, L, 2) model landmarks in crop pixels."""
+        out = self.model(**self.params.model_inputs(), translation=None)
+        return project(self.params.to_camera(out.landmarks), self.params.K())
+
+    def __call__(self, stage_all: bool) -> torch.Tensor:
+        p, c = self.params, self.config
+        proj = self.project()
+        err = (proj - self.target).norm(dim=-1) * self.scale  # (T, L), inter-ocular units
+        data = (self.frame_w * err).sum() / self.frame_w.sum()  # L1 on landmark distances, as NHA
+        if not stage_all:
+            return data + c.smooth * (_smooth(p.poses["root_pose"]) + _smooth(p.trans))
+        pairs = self.spec.eyelid_pairs
+        lid_model = proj[:, pairs[:, 0]] - proj[:, pairs[:, 1]]
+        lid_det = self.target[:, pairs[:, 0]] - self.target[:, pairs[:, 1]]
+        lid = (self.valid.float()[:, None] * (lid_model - lid_det).norm(dim=-1) * self.scale).sum() / (self.valid.sum() * len(pairs))
+        e = p.expression()
+        prior = (c.shape_prior * p.shape.pow(2).mean()
+                 + c.expression_prior * (e.abs().mean() if p.bounded else e.pow(2).mean())
+                 + c.pose_prior * sum(p.poses[k].pow(2).mean() for k in FRAME_PARAMS[2:6]))
+        smooth = sum(_smooth(v) for v in [e] + list(p.poses.values())) + _smooth(p.trans)
+        return data + c.eyelid_weight * lid + prior + c.smooth * smooth
+
+
 def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, resolution: int,
-                    config: TrackerConfig = TrackerConfig(), progress=None) -> TrackResult:
+                    config: TrackerConfig = TrackerConfig(), progress=None, photometric=None) -> TrackResult:
     """Fit ``model`` to MediaPipe landmarks (T, 478, 2) in crop pixels of a ``resolution``^2 crop.
 
     Models embedding MediaPipe's 478 points use them all; models embedding iBUG-68 (FLAME)
     use the matching 68 detections (:class:`~headforge.head.landmarks.LandmarkSpec`).
 
     Pass ``HeadModel(data, landmarks_only=True)``: the same landmarks at a fraction of the cost.
+    ``photometric``: a :class:`headforge.track.photometric.PhotometricTarget` (images, masks,
+    the full model) to refine the fit with the renderer after the landmark stages.
     """
     T = len(landmarks)
     if landmarks.shape[1:] != (N_MEDIAPIPE, 2):
@@ -80,12 +180,6 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
         raise HeadforgeError("no valid frames to track")
     spec = LandmarkSpec.for_model(model.num_landmarks)
     landmarks = landmarks[:, spec.detection_ids]  # detections matching the model's landmarks
-    bounded = model.meta.get("expression_range") == [0.0, 1.0]
-    target = torch.tensor(np.nan_to_num(landmarks), dtype=torch.float32)
-    valid_t = torch.tensor(valid)
-    weight = torch.ones(len(spec.detection_ids))
-    weight[torch.from_numpy(spec.contour)] = config.oval_weight
-    frame_w = valid_t.float()[:, None] * weight  # (T, 478)
     c = (resolution - 1) / 2
 
     # Initial depth and position from the inter-ocular distance.
@@ -101,47 +195,10 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
     mid = np.nan_to_num(0.5 * (landmarks[:, a] + landmarks[:, b]), nan=c)
     trans0 = np.stack([(mid[:, 0] - c) * depth / f0, (mid[:, 1] - c) * depth / f0, np.full(T, depth)], 1)
 
-    log_focal = torch.tensor(float(np.log(f0)), dtype=torch.float32, requires_grad=config.focal is None)
-    shape = torch.zeros(1, config.n_shape, requires_grad=True)
-    expr = torch.full((T, model.n_expr), -4.0 if bounded else 0.0, requires_grad=True)
-    poses = {k: torch.zeros(T, 3, requires_grad=True) for k in FRAME_PARAMS[1:6]}
-    trans = torch.tensor(trans0, dtype=torch.float32, requires_grad=True)
-    rigid = [poses["root_pose"], trans] + ([log_focal] if config.focal is None else [])
-    everything = rigid + [shape, expr] + [poses[k] for k in FRAME_PARAMS[2:6]]
-    scale = 1.0 / max(eye_img, 1.0)
-
-    def expression():
-        return torch.sigmoid(expr) if bounded else expr
-
-    def evaluate():
-        full_shape = torch.cat([shape, torch.zeros(1, model.n_shape - config.n_shape)], 1).expand(T, -1)
-        out = model(shape=full_shape, expression=expression(), translation=None,
-                    **{k: poses[k] for k in FRAME_PARAMS[1:6]})
-        cam = out.landmarks @ FLIP.T + trans[:, None]
-        K = torch.stack([torch.stack([log_focal.exp(), torch.tensor(0.0), torch.tensor(c)]),
-                         torch.stack([torch.tensor(0.0), log_focal.exp(), torch.tensor(c)]),
-                         torch.tensor([0.0, 0.0, 1.0])])
-        return project(cam, K), K
-
-    def energy(stage_all: bool):
-        proj, _ = evaluate()
-        err = (proj - target).norm(dim=-1) * scale  # (T, 478), inter-ocular units
-        data = (frame_w * err).sum() / frame_w.sum()  # L1 on landmark distances, as NHA
-        if not stage_all:
-            return data + config.smooth * (_smooth(poses["root_pose"]) + _smooth(trans))
-        pairs = spec.eyelid_pairs
-        lid_model = proj[:, pairs[:, 0]] - proj[:, pairs[:, 1]]
-        lid_det = target[:, pairs[:, 0]] - target[:, pairs[:, 1]]
-        lid = (valid_t.float()[:, None] * (lid_model - lid_det).norm(dim=-1) * scale).sum() / (valid_t.sum() * len(pairs))
-        e = expression()
-        prior = (config.shape_prior * shape.pow(2).mean()
-                 + config.expression_prior * (e.abs().mean() if bounded else e.pow(2).mean())
-                 + config.pose_prior * sum(poses[k].pow(2).mean() for k in FRAME_PARAMS[2:6]))
-        smooth = sum(_smooth(v) for v in [e] + list(poses.values())) + _smooth(trans)
-        return data + config.eyelid_weight * lid + prior + config.smooth * smooth
-
-    for stage_all, steps, params in ((False, config.rigid_steps, rigid), (True, config.steps, everything)):
-        opt = torch.optim.Adam(params, lr=config.lr)
+    params = ClipParameters(model, T, config.n_shape, trans0, f0, config.focal is None, resolution)
+    energy = LandmarkEnergy(model, params, landmarks, valid, spec, config, eye_img)
+    for stage_all, steps, leaves in ((False, config.rigid_steps, params.rigid), (True, config.steps, params.everything)):
+        opt = torch.optim.Adam(leaves, lr=config.lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=config.lr * 0.05)
         for step in range(steps):
             opt.zero_grad()
@@ -151,14 +208,19 @@ def track_landmarks(model: HeadModel, landmarks: np.ndarray, valid: np.ndarray, 
             sched.step()
             if progress is not None:
                 progress(float(loss.detach()))
+    outcome = None
+    if photometric is not None:
+        from headforge.track.photometric import refine
+
+        outcome = refine(params, energy, photometric, progress)
     with torch.no_grad():
-        proj, K = evaluate()
+        proj = energy.project()
+        K = params.K()
     projected = proj.numpy()
     errors = np.linalg.norm(projected - landmarks, axis=-1)
     errors[~valid] = np.nan
-    full_shape = torch.cat([shape.detach(), torch.zeros(1, model.n_shape - config.n_shape)], 1)
-    frames = {"expression": expression().detach(), **{k: v.detach() for k, v in poses.items()}, "translation": trans.detach()}
-    return TrackResult(full_shape, frames, K.numpy().astype(np.float64), projected, errors, spec)
+    return TrackResult(params.full_shape().detach(), params.result_frames(), K.numpy().astype(np.float64),
+                       projected, errors, spec, outcome and outcome.l1, outcome and outcome.preview)
 
 
 def _smooth(x: torch.Tensor) -> torch.Tensor:
