@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from headforge.errors import HeadforgeError
 from headforge.head.model import HeadModel
 from headforge.head.topology import laplacian_smooth, vertex_normals
 from headforge.render import mesh
@@ -202,8 +203,10 @@ def load_target(frames: list, masks: list, usable: np.ndarray, model: HeadModel,
     images = np.empty((len(frames), size, size, 3), np.uint8)
     alphas = np.empty((len(frames), size, size), np.uint8)
     for t, (f, m) in enumerate(zip(frames, masks)):
-        rgb = cv2.cvtColor(cv2.imread(str(f), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        images[t] = cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA)
-        alphas[t] = cv2.resize(cv2.imread(str(m), cv2.IMREAD_GRAYSCALE), (size, size), interpolation=cv2.INTER_AREA)
+        bgr, alpha = cv2.imread(str(f), cv2.IMREAD_COLOR), cv2.imread(str(m), cv2.IMREAD_GRAYSCALE)
+        if bgr is None or alpha is None:
+            raise HeadforgeError(f"cannot read crop or mask of frame {t}: {f}, {m}")
+        images[t] = cv2.resize(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), (size, size), interpolation=cv2.INTER_AREA)
+        alphas[t] = cv2.resize(alpha, (size, size), interpolation=cv2.INTER_AREA)
     return PhotometricTarget(torch.from_numpy(images).float() / 255, torch.from_numpy(alphas).float() / 255,
                              usable, model, config)

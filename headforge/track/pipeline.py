@@ -139,6 +139,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     write_seconds = time.perf_counter() - write_start
 
     # 3. tracking
+    head = HeadModel(data)
     track_path = work / "tracking.safetensors"
     track_start = time.perf_counter()
     if track_path.is_file():
@@ -153,7 +154,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
             photo.size = min(photo.size, res)
             names = [f"{t:05d}.png" for t in range(T)]
             target = load_target([work / "frames" / n for n in names], [work / "masks" / n for n in names],
-                                 det.valid, HeadModel(data), photo)
+                                 det.valid, head, photo)
         advance = bar("tracking", config.rigid_steps + config.steps + (target.config.steps if target else 0))
         result = track_landmarks(HeadModel(data, landmarks_only=True), lmk, det.valid, res, config,
                                  progress=advance and (lambda loss: advance()), photometric=target)
@@ -173,7 +174,6 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     fit_seconds = time.perf_counter() - track_start
     errors = np.linalg.norm(tracked["projected"].numpy() - lmk, axis=-1)  # NaN where not matched
     errors[~det.valid] = np.nan
-    head = HeadModel(data)
     spec = LandmarkSpec.for_model(head.num_landmarks)
     inner = spec.detection_ids[~spec.contour]
 
