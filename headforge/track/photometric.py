@@ -160,8 +160,8 @@ def refine(params, energy, target: PhotometricTarget, progress=None) -> Photomet
             anchor = (params.trans[:, 2].mean() / depth0 - 1).pow(2)
             loss = loss + cfg.landmark_weight * energy(True) + cfg.depth_anchor * anchor
         loss.backward()
-        for p in params.everything:  # appearance-only steps leave the geometry's Adam state alone
-            if not joint and p.grad is not None:
+        if not joint:  # appearance-only steps leave the geometry's Adam state alone
+            for p in params.everything:
                 p.grad = None
         opt.step()
         recent = (recent + [float(photo.detach())])[-20:]
