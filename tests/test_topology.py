@@ -114,8 +114,19 @@ def test_normals_and_tbn_frames(tiny_data):
 
 
 def test_open_head_template_edits(open_head_data):
-    """NHA's template on open-head: lower neck cut, then 4-way subdivided."""
+    """NHA's template on open-head: lower neck cut, then 4-way subdivided. The cut keeps the
+    joints (open-head regresses its neck joint partly from the lower neck): the kept vertices
+    pose exactly as in the full model."""
     cut = topology.remove_region(open_head_data, "lower_neck")
+    assert np.abs(open_head_data.j_regressor[:, open_head_data.regions["lower_neck"]]).sum() > 0  # the case that matters
+    torch.manual_seed(0)
+    S, E = open_head_data.shapedirs.shape[2], open_head_data.exprdirs.shape[2]
+    params = dict(shape=torch.randn(2, S), expression=torch.randn(2, E), root_pose=0.2 * torch.randn(2, 3),
+                  neck_pose=0.3 * torch.randn(2, 3), jaw_pose=0.1 * torch.randn(2, 3))
+    full, part = HeadModel(open_head_data)(**params), HeadModel(cut)(**params)
+    kept = np.setdiff1d(np.arange(len(open_head_data.v_template)), open_head_data.regions["lower_neck"])
+    kept = kept[np.isin(kept, np.unique(open_head_data.faces[~np.isin(open_head_data.faces, open_head_data.regions["lower_neck"]).any(1)]))]
+    torch.testing.assert_close(part.vertices, full.vertices[:, kept], atol=1e-6, rtol=0)
     dense = topology.subdivide_head(cut)
     assert len(dense.faces) == 4 * len(cut.faces)
     model = HeadModel(dense)

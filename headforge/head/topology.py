@@ -126,11 +126,33 @@ def remove_region(data: HeadModelData, region: str) -> HeadModelData:
     pick = lambda a: None if a is None else a[used]  # noqa: E731
     out = replace(data, v_template=data.v_template[used], faces=remap[faces], uv_faces=data.uv_faces[keep_face],
                   shapedirs=data.shapedirs[used], exprdirs=data.exprdirs[used], posedirs=pick(data.posedirs),
-                  weights=data.weights[used], j_regressor=data.j_regressor[:, used], regions=regions,
+                  weights=data.weights[used], j_regressor=_joint_regressor_on(data, used), regions=regions,
                   landmark_faces=lmk_faces, landmark_bary=lmk_bary,
                   meta={**data.meta, "removed_regions": data.meta.get("removed_regions", []) + [region]})
     out.validate()
     return out
+
+
+def _joint_regressor_on(data: HeadModelData, used: np.ndarray) -> np.ndarray:
+    """(J, len(used)) joint regressor on a vertex subset that gives the same joints as the full
+    one for every shape and expression. Joints are linear in the template and the blend
+    directions; when the dropped vertices carry regressor weight (a neck joint regressed from
+    the lower neck), the weights are re-solved by least squares on the kept vertices -- simply
+    dropping those columns moved the neck and head joints and the posed head by ~8 mm."""
+    dropped = np.ones(len(data.v_template), dtype=bool)
+    dropped[used] = False
+    if not np.abs(data.j_regressor[:, dropped]).any():
+        return data.j_regressor[:, used]
+    basis = np.concatenate([data.v_template[:, :, None], data.shapedirs, data.exprdirs], axis=2)  # (V, 3, K)
+    target = np.einsum("jv,vck->jck", data.j_regressor, basis).reshape(len(data.j_regressor), -1)
+    kept = basis[used].reshape(len(used), -1)  # (U, 3K)
+    solution = np.linalg.lstsq(kept.T.astype(np.float64), target.T.astype(np.float64), rcond=None)[0]  # (U, J)
+    regressor = solution.T.astype(data.j_regressor.dtype)
+    scale = np.abs(target).max()
+    error = np.abs(regressor @ kept - target).max()
+    if error > 1e-5 * max(scale, 1.0):
+        raise HeadforgeError(f"cannot keep the joints when removing vertices (residual {error:.2e})")
+    return regressor
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
