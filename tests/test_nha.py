@@ -26,14 +26,42 @@ def test_film_siren_shapes_and_conditioning():
     off = g(torch.rand(50, 3) * 2 - 1, torch.zeros(3, 3))
     assert off.shape == (3, 50, 3) and off.abs().max() <= 0.01
     assert torch.allclose(off[0], off[1])  # same condition, same offsets
-    tex = TextureNet(grid_size=16, grid_channels=4, layers=3, width=16, cond_dim=6)
+    tex = TextureNet(grid_size=16, grid_channels=4, layers=3, width=16, cond_dim=6, mouth_grid_size=8,
+                     normal_channels=(8, 8, 4), head_width=8)
     mouth = torch.tensor([False, True, False, True])
-    rgb = tex(torch.rand(4, 3), torch.rand(4, 2), torch.randn(4, 6), mouth)
+    feats = torch.randn(4, 4)
+    rgb = tex(torch.rand(4, 3), torch.rand(4, 2), torch.randn(4, 6), mouth, feats)
     assert rgb.shape == (4, 3) and ((rgb >= 0) & (rgb <= 1)).all()
     # the mouth condition changes mouth pixels only
-    rgb2 = tex(torch.rand(4, 3) * 0 + rgb.new_tensor(0.3), torch.rand(4, 2) * 0 + 0.5, torch.randn(4, 6), mouth)
-    rgb3 = tex(torch.rand(4, 3) * 0 + rgb.new_tensor(0.3), torch.rand(4, 2) * 0 + 0.5, torch.randn(4, 6), mouth)
+    p, uv = torch.full((4, 3), 0.3), torch.full((4, 2), 0.5)
+    rgb2 = tex(p, uv, torch.randn(4, 6), mouth, feats)
+    rgb3 = tex(p, uv, torch.randn(4, 6), mouth, feats)
     assert torch.allclose(rgb2[~mouth], rgb3[~mouth]) and not torch.allclose(rgb2[mouth], rgb3[mouth])
+    # the inner-mouth pixels read their own grid
+    inner = torch.tensor([True, False, False, False])
+    assert torch.equal(tex.sample_grid(uv, inner)[1:], tex.sample_grid(uv)[1:])
+    assert not torch.allclose(tex.sample_grid(uv, inner)[0], tex.sample_grid(uv)[0])
+
+
+def test_normal_patches_shade_the_texture_and_reach_the_geometry():
+    """The second head sees the normal encoder's feature; a flat patch's feature (used for baking)
+    equals the convolutional encoder's at the middle of a constant normal image."""
+    torch.manual_seed(0)
+    tex = TextureNet(grid_size=16, grid_channels=4, layers=3, width=16, cond_dim=6, mouth_grid_size=8,
+                     normal_channels=(8, 8, 4), head_width=8)
+    with torch.no_grad():
+        tex.head_rgb.weight.normal_(std=0.5)  # a trained second head
+    normal = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, -1.0]]), dim=-1).requires_grad_()
+    image = normal[0][None, None, None].expand(1, 9, 9, 3)
+    conv = tex.encode_normals(image)[0, 4, 4]
+    flat = tex.encode_uniform_normals(normal)[0]
+    assert torch.allclose(conv, flat, atol=1e-5)
+    p, uv, cond, mouth = torch.full((1, 3), 0.3), torch.full((1, 2), 0.5), torch.zeros(1, 6), torch.zeros(1, dtype=torch.bool)
+    lit = tex(p, uv, cond, mouth, tex.encode_uniform_normals(normal))
+    other = tex(p, uv, cond, mouth, tex.encode_uniform_normals(torch.tensor([[0.0, 0.0, -1.0]])))
+    assert (lit - other).abs().max() > 1e-3  # the colour depends on the normal
+    lit.sum().backward()
+    assert normal.grad.abs().max() > 0  # and a photometric loss moves the geometry
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +90,26 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     assert far.sum() > 100 and moved[far].max() < 1e-7
     assert moved[~far].max() > 1e-5
     assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
+
+
+def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, tiny_config):
+    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar
+    from headforge.head.topology import vertex_normals
+    from headforge.render import mesh
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    data = FrameData(dataset, "val", tiny_config.resolution)
+    cams = _cameras(data.K, 2, tiny_config.resolution)
+    verts = avatar.pose(avatar.frame_params(data.index[:2]))[0]
+    faces = avatar.head.faces
+    frags = mesh.rasterize(cams, verts, faces)
+    bary = mesh.barycentrics(frags, cams, verts, faces)
+    hit = frags.face_id >= 0
+    assert 0 < hit.float().mean() < 0.7  # the crop is smaller than the image
+    cropped = avatar._normal_patches(verts, frags, bary, hit)
+    whole = avatar.texture_net.encode_normals(mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary))[hit]
+    assert torch.allclose(cropped, whole, atol=1e-6)
 
 
 def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path):

@@ -20,7 +20,10 @@ FORMATS = ("obj", "ply", "glb")
 @torch.no_grad()
 def bake_texture(avatar, size: int = 512) -> np.ndarray:
     """(size, size, 3) float texture: T evaluated at every texel's surface point (static
-    texture, zero mouth condition); texels outside the UV islands are dilated from inside."""
+    texture, zero mouth condition; the normal head sees the neutral head's normal as seen by a
+    frontal camera, as a flat patch); texels outside the UV islands are dilated from inside."""
+    from headforge.avatars.nha.model import FRAME_KEYS
+    from headforge.head.topology import vertex_normals
     import cv2
 
     faces_uv = avatar.uv_corners  # (F, 3, 2)
@@ -36,9 +39,15 @@ def bake_texture(avatar, size: int = 512) -> np.ndarray:
     faces = avatar.head.faces
     canon = (avatar.positions[faces[fid]] * b[..., None]).sum(1)
     uv = (faces_uv[fid] * b[..., None]).sum(1)
-    colour = torch.cat([avatar.texture_net(c, u, torch.zeros(len(c), avatar.texture_net.cond_dim),
-                                           torch.zeros(len(c), dtype=torch.bool))
-                        for c, u in zip(canon.split(65536), uv.split(65536))])
+    neutral = {k: torch.zeros_like(avatar.frames[k][:1]) for k in FRAME_KEYS}
+    vn = vertex_normals(avatar.pose(neutral)[0][0], faces)  # camera space, frontal
+    normal = torch.nn.functional.normalize((vn[faces[fid]] * b[..., None]).sum(1), dim=-1)
+    inner = avatar.inner_mouth_faces[fid]
+    net = avatar.texture_net
+    colour = torch.cat([net(c, u, torch.zeros(len(c), net.cond_dim), torch.zeros(len(c), dtype=torch.bool),
+                            net.encode_uniform_normals(n), m)
+                        for c, u, n, m in zip(canon.split(65536), uv.split(65536), normal.split(65536),
+                                              inner.split(65536))])
     image = np.zeros((size, size, 3), np.float32)
     image[hit.numpy()] = colour.numpy()
     # dilate into the gutters so bilinear lookups at island borders stay clean

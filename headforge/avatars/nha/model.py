@@ -15,7 +15,7 @@ from torch import nn
 
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.head.model import HeadModel, HeadModelData
-from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head
+from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
 from headforge.render.camera import Cameras
 
@@ -59,7 +59,8 @@ class NeuralHeadAvatar(nn.Module):
         self.geometry_net = GeometryNet(V, config.embed_dim, config.geo_layers, config.geo_width, cond_dim=3,
                                         max_offset=config.max_offset)
         self.texture_net = TextureNet(config.tex_grid, config.tex_channels, config.tex_layers, config.tex_width,
-                                      cond_dim=3 + len(LIP_PAIRS))
+                                      cond_dim=3 + len(LIP_PAIRS), mouth_grid_size=config.tex_mouth_grid,
+                                      normal_channels=tuple(config.normal_channels), head_width=config.tex_head_width)
         faces = self.head.faces
         region = lambda name: self.head.region(name) if name in self.head.region_names else torch.zeros(0, dtype=torch.long)  # noqa: E731
         # dynamic (neck-pose dependent) offsets only on the neck, faded smoothly into the head
@@ -74,6 +75,9 @@ class NeuralHeadAvatar(nn.Module):
         mouth[region("lips")] = True
         mouth[region("mouth_interior")] = True
         self.register_buffer("mouth_faces", mouth[faces].any(1))
+        inner = torch.zeros(V, dtype=torch.bool)
+        inner[region("mouth_interior")] = True
+        self.register_buffer("inner_mouth_faces", inner[faces].all(1), persistent=False)  # derived
         face = torch.zeros(V)
         face[region("face")] = 1.0
         self.register_buffer("face_vertices", face)
@@ -147,17 +151,30 @@ class NeuralHeadAvatar(nn.Module):
             uv = (self.uv_corners[fid] * b[..., None]).sum(1)
             cond = self.mouth_condition(params, lmk)
             batch = torch.nonzero(hit)[:, 0]
-            colour = self.texture_net(canon, uv, cond[batch], self.mouth_faces[fid])
+            patches = self._normal_patches(verts, frags, bary, hit)
+            colour = self.texture_net(canon, uv, cond[batch], self.mouth_faces[fid], patches,
+                                      self.inner_mouth_faces[fid])
             rgb = rgb.index_put(tuple(torch.nonzero(hit).T), colour)
         ones = hit[..., None].to(verts.dtype)
         out = mesh.antialias(torch.cat([rgb, ones], -1), frags, cameras, verts, faces)
         return Rendered(out[..., :3], out[..., 3].clamp(0, 1), frags, verts, lmk, offsets)
 
+    def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
+        """(N, C) normal-encoder features of the covered pixels, from the rendered camera-space
+        normals. The convolutions run on the covered pixels' bounding box plus a margin of the
+        encoder's receptive radius, which gives the same features as the whole image."""
+        faces = self.head.faces
+        normals = mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary)  # (B, H, W, 3)
+        margin = len(self.texture_net.normal_encoder.convs)
+        ys, xs = torch.nonzero(hit.any(0), as_tuple=True)
+        y0, y1 = max(int(ys.min()) - margin, 0), min(int(ys.max()) + margin + 1, hit.shape[1])
+        x0, x1 = max(int(xs.min()) - margin, 0), min(int(xs.max()) + margin + 1, hit.shape[2])
+        feats = self.texture_net.encode_normals(normals[:, y0:y1, x0:x1])
+        return feats[hit[:, y0:y1, x0:x1]]
+
     def contour_points(self, vertices: torch.Tensor, K: torch.Tensor, max_cos: float = 0.25) -> list[torch.Tensor]:
         """Per frame, the projected pixels (N_b, 2) of vertices on the silhouette rim: their
         normal is nearly perpendicular to the viewing ray (|cos| < ``max_cos``)."""
-        from headforge.head.topology import vertex_normals
-
         v = vertices[:, self.outline_vertices]
         n = vertex_normals(vertices, self.head.faces)[:, self.outline_vertices]
         cos = (n * torch.nn.functional.normalize(v, dim=-1)).sum(-1).detach()

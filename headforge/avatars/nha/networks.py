@@ -85,38 +85,134 @@ class GeometryNet(nn.Module):
         return self.max_offset * torch.tanh(self.head(self.siren(x, gamma, beta)))
 
 
+class NormalEncoder(nn.Module):
+    """NHA's normal encoder (App. A.2.2): fully convolutional, 3x3 stride-1 convolutions with
+    periodic activations over the rendered normal map, FiLM-conditioned like the linear layers.
+    (B, 3, H, W) camera-space normals (zero on the background) -> (B, channels[-1], H, W): a
+    feature of each pixel's local normal patch (receptive field 7x7 for three layers)."""
+
+    def __init__(self, channels: tuple[int, ...] = (128, 128, 32), omega: float = 3.0):
+        super().__init__()
+        dims = (3,) + tuple(channels)
+        self.convs = nn.ModuleList([nn.Conv2d(a, b, 3, padding=1) for a, b in zip(dims[:-1], dims[1:])])
+        with torch.no_grad():
+            for conv in self.convs[1:]:
+                bound = math.sqrt(6 / (conv.in_channels * 9))
+                conv.weight.uniform_(-bound, bound)
+        self.omega = omega  # unit normals vary slowly across pixels: a low first frequency
+
+    def forward(self, normals: torch.Tensor, gamma: torch.Tensor | None = None,
+                beta: torch.Tensor | None = None) -> torch.Tensor:
+        """gamma/beta (B, layers, max(channels)) or None (identity FiLM)."""
+        x = normals
+        for i, conv in enumerate(self.convs):
+            h = conv(x) * (self.omega if i == 0 else 1.0)
+            if gamma is not None:
+                c = h.shape[1]
+                h = gamma[:, i, :c, None, None] * h + beta[:, i, :c, None, None]
+            x = torch.sin(h)
+        return x
+
+    def forward_uniform(self, normals: torch.Tensor, gamma: torch.Tensor | None = None,
+                        beta: torch.Tensor | None = None) -> torch.Tensor:
+        """The feature of a constant patch: (N, 3) normals -> (N, channels[-1]). Equal to
+        :meth:`forward` away from image borders; a 3x3 convolution of a constant image is a linear
+        map with the kernel summed over space. gamma/beta (1, layers, max(channels)) or None."""
+        x = normals
+        for i, conv in enumerate(self.convs):
+            h = x @ conv.weight.sum((2, 3)).T + conv.bias
+            h = h * (self.omega if i == 0 else 1.0)
+            if gamma is not None:
+                c = h.shape[1]
+                h = gamma[:, i, :c] * h + beta[:, i, :c]
+            x = torch.sin(h)
+        return x
+
+
 class TextureNet(nn.Module):
-    """T: colour of a surface point from its canonical position and a feature sampled from a
-    learned UV grid (App. A.2.2), FiLM-conditioned on mouth-related parameters -- used only in
-    the mouth region (elsewhere the zero condition: a static texture). Output RGB in [0, 1]."""
+    """T (App. A.2.2): colour of a surface point from its canonical position and a feature
+    sampled from a learned UV grid (a separate, smaller grid for the inner mouth), FiLM-conditioned
+    on mouth-related parameters -- used only in the mouth region (elsewhere the zero condition: a
+    static texture). Two heads summed before the tanh: a linear one on the SIREN feature, and one
+    that concatenates it with the normal encoder's feature of the pixel's normal patch (a linear
+    FiLM layer, then linear) -- the path for view- and expression-dependent shading, and through
+    which the photometric term reaches the geometry's normals. Output RGB in [0, 1]."""
 
     def __init__(self, grid_size: int = 256, grid_channels: int = 64, layers: int = 8, width: int = 256,
-                 cond_dim: int = 8):
+                 cond_dim: int = 8, mouth_grid_size: int = 64, normal_channels: tuple[int, ...] = (128, 128, 32),
+                 head_width: int = 128):
         super().__init__()
         self.grid = nn.Parameter(1e-2 * torch.randn(1, grid_channels, grid_size, grid_size))
-        self.mapping = MappingNetwork(cond_dim, layers, width, hidden_width=128)
+        self.mouth_grid = nn.Parameter(1e-2 * torch.randn(1, grid_channels, mouth_grid_size, mouth_grid_size))
+        film_width = max(width, head_width)
+        # FiLM of the SIREN layers, the head's FiLM layer, and the normal encoder's convolutions
+        self.mapping = MappingNetwork(cond_dim, layers + 1 + len(normal_channels), film_width, hidden_width=128)
         self.siren = FiLMSiren(3 + grid_channels, layers, width)
         self.rgb = nn.Linear(width, 3)
-        self.cond_dim = cond_dim
+        self.normal_encoder = NormalEncoder(normal_channels)
+        self.head_film = nn.Linear(width + normal_channels[-1], head_width)
+        self.head_rgb = nn.Linear(head_width, 3)
+        with torch.no_grad():
+            bound = math.sqrt(6 / self.head_film.in_features)
+            self.head_film.weight.uniform_(-bound, bound)
+            self.head_rgb.weight.mul_(0.1)  # starts as a small correction of the first head
+            self.head_rgb.bias.zero_()
+        self.cond_dim, self.layers, self.width, self.head_width = cond_dim, layers, width, head_width
+        self.n_normal = len(normal_channels)
 
-    def sample_grid(self, uv: torch.Tensor) -> torch.Tensor:
-        """uv (N, 2) in [0, 1], v up -> (N, C) bilinear features."""
-        grid = torch.stack([2 * uv[:, 0] - 1, 1 - 2 * uv[:, 1]], -1)[None, None]
-        return torch.nn.functional.grid_sample(self.grid, grid, align_corners=False)[0, :, 0].T
+    @staticmethod
+    def _sample(grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """uv (N, 2) in [0, 1], v up -> (N, C) bilinear features of ``grid`` (1, C, S, S)."""
+        xy = torch.stack([2 * uv[:, 0] - 1, 1 - 2 * uv[:, 1]], -1)[None, None]
+        return torch.nn.functional.grid_sample(grid, xy, align_corners=False)[0, :, 0].T
 
-    def forward(self, points: torch.Tensor, uv: torch.Tensor, cond: torch.Tensor, mouth: torch.Tensor) -> torch.Tensor:
+    def sample_grid(self, uv: torch.Tensor, inner_mouth: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, C) features: the main grid, or the inner-mouth grid where ``inner_mouth`` (N,) is set."""
+        feats = self._sample(self.grid, uv)
+        if inner_mouth is not None and inner_mouth.any():
+            feats = feats.index_put((torch.nonzero(inner_mouth)[:, 0],), self._sample(self.mouth_grid, uv[inner_mouth]))
+        return feats
+
+    def film(self, cond: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(B, cond_dim) -> FiLM parameters of the SIREN, the second head and the normal encoder."""
+        gamma, beta = self.mapping(cond)
+        L, W = self.layers, self.width
+        return {"siren": (gamma[:, :L, :W], beta[:, :L, :W]), "head": (gamma[:, L, : self.head_width], beta[:, L, : self.head_width]),
+                "normals": (gamma[:, L + 1:], beta[:, L + 1:])}
+
+    def encode_normals(self, normals: torch.Tensor) -> torch.Tensor:
+        """(B, H, W, 3) rendered normals -> (B, H, W, C) patch features, zero condition (the
+        mouth condition steers the colour heads; the encoder sees geometry only)."""
+        zero = torch.zeros(1, self.cond_dim, dtype=normals.dtype, device=normals.device)
+        gamma, beta = self.film(zero)["normals"]
+        feats = self.normal_encoder(normals.permute(0, 3, 1, 2), gamma.expand(len(normals), -1, -1),
+                                    beta.expand(len(normals), -1, -1))
+        return feats.permute(0, 2, 3, 1)
+
+    def encode_uniform_normals(self, normals: torch.Tensor) -> torch.Tensor:
+        """(N, 3) normals -> (N, C) features of flat patches (texture baking)."""
+        zero = torch.zeros(1, self.cond_dim, dtype=normals.dtype, device=normals.device)
+        gamma, beta = self.film(zero)["normals"]
+        return self.normal_encoder.forward_uniform(normals, gamma, beta)
+
+    def forward(self, points: torch.Tensor, uv: torch.Tensor, cond: torch.Tensor, mouth: torch.Tensor,
+                normal_features: torch.Tensor, inner_mouth: torch.Tensor | None = None) -> torch.Tensor:
         """points (N, 3) canonical in [-1, 1]; uv (N, 2); cond (N, cond_dim) per pixel; mouth (N,)
-        bool -> rgb (N, 3). Runs the network once for static pixels and once for mouth pixels."""
-        x = torch.cat([points, self.sample_grid(uv)], -1)
+        bool; normal_features (N, C) from :meth:`encode_normals`; inner_mouth (N,) bool ->
+        rgb (N, 3). Runs the network once for static pixels and once for mouth pixels."""
+        x = torch.cat([points, self.sample_grid(uv, inner_mouth)], -1)
         out = torch.empty(len(x), 3, dtype=x.dtype, device=x.device)
         for sel, c in ((~mouth, torch.zeros(1, self.cond_dim, dtype=x.dtype, device=x.device)), (mouth, None)):
             if not sel.any():
                 continue
             if c is None:  # mouth pixels: per-pixel condition (their frame's mouth parameters)
-                gamma, beta = self.mapping(cond[sel])
-                h = self.siren(x[sel][:, None], gamma, beta)[:, 0]
+                f = self.film(cond[sel])
+                h = self.siren(x[sel][:, None], *f["siren"])[:, 0]
+                g, b = f["head"]
             else:
-                gamma, beta = self.mapping(c)
-                h = self.siren(x[sel][None], gamma, beta)[0]
-            out[sel] = 0.5 + 0.5 * torch.tanh(self.rgb(h))
+                f = self.film(c)
+                h = self.siren(x[sel][None], *f["siren"])[0]
+                g, b = f["head"][0][0], f["head"][1][0]
+            second = torch.sin(g * self.head_film(torch.cat([h, normal_features[sel]], -1)) + b)
+            out[sel] = 0.5 + 0.5 * torch.tanh(self.rgb(h) + self.head_rgb(second))
         return out

@@ -41,6 +41,9 @@ class NHAConfig:
     tex_channels: int = 64
     tex_layers: int = 8
     tex_width: int = 256
+    tex_mouth_grid: int = 64
+    normal_channels: tuple[int, ...] = (128, 128, 32)
+    tex_head_width: int = 128
     batch: int = 2
     geometry_iters: int = 2000
     texture_iters: int = 2000
@@ -69,7 +72,8 @@ class NHAConfig:
     @classmethod
     def quick(cls) -> "NHAConfig":
         return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
-                   tex_width=96, geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, tto_steps=15)
+                   tex_width=96, tex_mouth_grid=32, normal_channels=(16, 16, 16), tex_head_width=48,
+                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, tto_steps=15)
 
     @classmethod
     def paper(cls) -> "NHAConfig":
@@ -228,9 +232,10 @@ def _optimisers(avatar, config: NHAConfig):
     frames = torch.optim.SGD([{"params": [avatar.frames[k]], "lr": config.lr_frames * scale[k]} for k in scale])
     geometry = torch.optim.Adam([{"params": avatar.geometry_net.parameters(), "lr": config.lr_geometry},
                                  {"params": [avatar.shape], "lr": config.lr_shape}])
-    texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n != "grid"],
+    grids = ("grid", "mouth_grid")
+    texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n not in grids],
                                  "lr": config.lr_texture},
-                                {"params": [avatar.texture_net.grid], "lr": config.lr_grid}])
+                                {"params": [getattr(avatar.texture_net, n) for n in grids], "lr": config.lr_grid}])
     return {"frames": frames, "geometry": geometry, "texture": texture}
 
 
@@ -272,7 +277,6 @@ def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
 
 def load_run(run: Path):
     """(avatar, config, meta) of a finished or checkpointed run folder."""
-    from safetensors.torch import load_file
 
     cfg_path = run / "config.json"
     if not cfg_path.is_file():
@@ -285,8 +289,18 @@ def load_run(run: Path):
     ckpt = run / "checkpoint.safetensors"
     if not ckpt.is_file():
         raise HeadforgeError(f"{ckpt} is missing")
-    avatar.load_state_dict(load_file(str(ckpt)))
+    _load_weights(avatar, ckpt)
     return avatar, config, meta
+
+
+def _load_weights(avatar, path: Path) -> None:
+    from safetensors.torch import load_file
+
+    try:
+        avatar.load_state_dict(load_file(str(path)))
+    except RuntimeError as err:
+        first = str(err).splitlines()[1].strip() if len(str(err).splitlines()) > 1 else str(err)
+        raise HeadforgeError(f"{path} was written by another headforge version or network layout ({first})") from None
 
 
 def test_time_optimise(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, steps: int) -> None:
@@ -358,9 +372,8 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     optimisers = _optimisers(avatar, config)
     state = {"iteration": 0, "seconds": 0.0}
     if resume:
-        from safetensors.torch import load_file
 
-        avatar.load_state_dict(load_file(str(run / "checkpoint.safetensors")))
+        _load_weights(avatar, run / "checkpoint.safetensors")
         for k, sd in torch.load(run / "optimisers.pt", weights_only=False).items():
             optimisers[k].load_state_dict(sd)
         state = json.loads((run / "state.json").read_text())
