@@ -277,7 +277,6 @@ def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
 
 def load_run(run: Path):
     """(avatar, config, meta) of a finished or checkpointed run folder."""
-
     cfg_path = run / "config.json"
     if not cfg_path.is_file():
         raise HeadforgeError(f"{run} is not a headforge run (config.json missing)")
@@ -372,7 +371,6 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     optimisers = _optimisers(avatar, config)
     state = {"iteration": 0, "seconds": 0.0}
     if resume:
-
         _load_weights(avatar, run / "checkpoint.safetensors")
         for k, sd in torch.load(run / "optimisers.pt", weights_only=False).items():
             optimisers[k].load_state_dict(sd)
