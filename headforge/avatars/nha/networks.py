@@ -101,16 +101,20 @@ class NormalEncoder(nn.Module):
                 conv.weight.uniform_(-bound, bound)
         self.omega = omega  # unit normals vary slowly across pixels: a low first frequency
 
+    def _activate(self, i: int, h: torch.Tensor, gamma: torch.Tensor | None, beta: torch.Tensor | None) -> torch.Tensor:
+        """sin(FiLM(h)) of layer ``i``; h (B, C, ...) with channels in dim 1."""
+        h = h * (self.omega if i == 0 else 1.0)
+        if gamma is not None:
+            shape = (-1, h.shape[1]) + (1,) * (h.ndim - 2)
+            h = gamma[:, i, : h.shape[1]].reshape(shape) * h + beta[:, i, : h.shape[1]].reshape(shape)
+        return torch.sin(h)
+
     def forward(self, normals: torch.Tensor, gamma: torch.Tensor | None = None,
                 beta: torch.Tensor | None = None) -> torch.Tensor:
         """gamma/beta (B, layers, max(channels)) or None (identity FiLM)."""
         x = normals
         for i, conv in enumerate(self.convs):
-            h = conv(x) * (self.omega if i == 0 else 1.0)
-            if gamma is not None:
-                c = h.shape[1]
-                h = gamma[:, i, :c, None, None] * h + beta[:, i, :c, None, None]
-            x = torch.sin(h)
+            x = self._activate(i, conv(x), gamma, beta)
         return x
 
     def forward_uniform(self, normals: torch.Tensor, gamma: torch.Tensor | None = None,
@@ -120,12 +124,7 @@ class NormalEncoder(nn.Module):
         map with the kernel summed over space. gamma/beta (1, layers, max(channels)) or None."""
         x = normals
         for i, conv in enumerate(self.convs):
-            h = x @ conv.weight.sum((2, 3)).T + conv.bias
-            h = h * (self.omega if i == 0 else 1.0)
-            if gamma is not None:
-                c = h.shape[1]
-                h = gamma[:, i, :c] * h + beta[:, i, :c]
-            x = torch.sin(h)
+            x = self._activate(i, x @ conv.weight.sum((2, 3)).T + conv.bias, gamma, beta)
         return x
 
 
@@ -158,7 +157,6 @@ class TextureNet(nn.Module):
             self.head_rgb.weight.mul_(0.1)  # starts as a small correction of the first head
             self.head_rgb.bias.zero_()
         self.cond_dim, self.layers, self.width, self.head_width = cond_dim, layers, width, head_width
-        self.n_normal = len(normal_channels)
 
     @staticmethod
     def _sample(grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -180,20 +178,21 @@ class TextureNet(nn.Module):
         return {"siren": (gamma[:, :L, :W], beta[:, :L, :W]), "head": (gamma[:, L, : self.head_width], beta[:, L, : self.head_width]),
                 "normals": (gamma[:, L + 1:], beta[:, L + 1:])}
 
+    def _normal_film(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The normal encoder's FiLM, from the zero condition (the mouth condition steers the
+        colour heads; the encoder sees geometry only)."""
+        return self.film(torch.zeros(1, self.cond_dim, dtype=like.dtype, device=like.device))["normals"]
+
     def encode_normals(self, normals: torch.Tensor) -> torch.Tensor:
-        """(B, H, W, 3) rendered normals -> (B, H, W, C) patch features, zero condition (the
-        mouth condition steers the colour heads; the encoder sees geometry only)."""
-        zero = torch.zeros(1, self.cond_dim, dtype=normals.dtype, device=normals.device)
-        gamma, beta = self.film(zero)["normals"]
+        """(B, H, W, 3) rendered normals -> (B, H, W, C) patch features."""
+        gamma, beta = self._normal_film(normals)
         feats = self.normal_encoder(normals.permute(0, 3, 1, 2), gamma.expand(len(normals), -1, -1),
                                     beta.expand(len(normals), -1, -1))
         return feats.permute(0, 2, 3, 1)
 
     def encode_uniform_normals(self, normals: torch.Tensor) -> torch.Tensor:
         """(N, 3) normals -> (N, C) features of flat patches (texture baking)."""
-        zero = torch.zeros(1, self.cond_dim, dtype=normals.dtype, device=normals.device)
-        gamma, beta = self.film(zero)["normals"]
-        return self.normal_encoder.forward_uniform(normals, gamma, beta)
+        return self.normal_encoder.forward_uniform(normals, *self._normal_film(normals))
 
     def forward(self, points: torch.Tensor, uv: torch.Tensor, cond: torch.Tensor, mouth: torch.Tensor,
                 normal_features: torch.Tensor, inner_mouth: torch.Tensor | None = None) -> torch.Tensor:
