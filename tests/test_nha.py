@@ -112,6 +112,50 @@ def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, t
     assert torch.allclose(cropped, whole, atol=1e-6)
 
 
+def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench, tiny_config):
+    """Per-frame fitting with frozen networks pulls a frame moved 15 mm sideways back toward its
+    tracked pose (which fits the GT mask and landmarks of the synthetic render) and leaves the
+    frames outside ``rows`` and the networks untouched."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.trainer import FrameData, align_frames, build_avatar, losses
+
+    config = replace(tiny_config, resolution=128)
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, config)
+    data = FrameData(dataset, "val", config.resolution)
+    rows = torch.tensor([0, 1])
+    idx = data.index[rows]
+    tracked = avatar.frames["translation"].detach().clone()
+
+    def projected():  # (2, V, 2) pixels
+        with torch.no_grad():
+            v = avatar.pose(avatar.frame_params(idx))[0]
+        return v[..., :2] / v[..., 2:] * data.K[0, 0]
+
+    target = projected()
+    with torch.no_grad():
+        avatar.frames["translation"][idx, 0] += 0.015
+    weights = {k: v.detach().clone() for k, v in avatar.state_dict().items() if not k.startswith("frames")}
+
+    def data_terms():
+        with torch.no_grad():
+            return sum(losses(avatar, data.batch(rows), data.K, config, "align").values()).item()
+
+    before, moved = data_terms(), (projected() - target).norm(dim=-1).mean()
+    align_frames(avatar, data, data.K, config, steps=25, rows=rows)
+    assert data_terms() < 0.7 * before
+    assert (projected() - target).norm(dim=-1).mean() < 0.5 * moved  # the image-space shift mostly undone
+    others = torch.ones(len(tracked), dtype=torch.bool)
+    others[idx] = False
+    assert torch.equal(avatar.frames["translation"].detach()[others], tracked[others])
+    assert not torch.equal(avatar.frames["translation"].detach()[idx], tracked[idx])
+    for k, v in avatar.state_dict().items():
+        if not k.startswith("frames"):
+            assert torch.equal(v, weights[k]), k
+    assert all(p.requires_grad for p in avatar.geometry_net.parameters())
+
+
 def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path):
     from headforge.avatars.nha.trainer import fit, load_run
     from headforge.cli import app
