@@ -382,7 +382,6 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
         config = NHAConfig.quick()
         config.scale_schedule(iterations)
         config.val_every = max(1, iterations // 4)
-        config.tto_steps = 10
         nha = fit(dataset, tmp / "nha", config, log=_progress, progress=bars.factory("training", config.total_iters))
         metrics.update({f"nha_{k}": v for k, v in nha.items() if k != "dataset"})
     _progress("3/4 rendering: validation frames, a novel-view orbit, the exported mesh, the head model turntable")

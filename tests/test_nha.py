@@ -118,7 +118,7 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
     frames outside ``rows`` and the networks untouched."""
     from dataclasses import replace
 
-    from headforge.avatars.nha.trainer import FrameData, align_frames, build_avatar, losses
+    from headforge.avatars.nha.trainer import FrameData, _subset, align_frames, build_avatar, losses, validate
 
     config = replace(tiny_config, resolution=128)
     dataset = synth_bench[0] / "subject_00"
@@ -154,6 +154,11 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
         if not k.startswith("frames"):
             assert torch.equal(v, weights[k]), k
     assert all(p.requires_grad for p in avatar.geometry_net.parameters())
+    # validation during training fits its frames but gives them back their parameters
+    frames = {k: v.detach().clone() for k, v in avatar.frames.items()}
+    scores = validate(avatar, _subset(data, torch.tensor([2, 3])), data.K, config)
+    assert 5 < scores["psnr"] < 60
+    assert all(torch.equal(avatar.frames[k].detach(), v) for k, v in frames.items())
 
 
 def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path):
