@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from headforge.avatars.nha.trainer import FrameData, _above_neck, _cameras, _subset, load_run, test_time_optimise
+from headforge.avatars.nha.trainer import FrameData, _subset, composites, load_run, test_time_optimise
 
 
 def main() -> None:
@@ -40,12 +40,7 @@ def main() -> None:
     with torch.no_grad():
         for rows in torch.arange(len(data)).split(config.batch):
             batch = data.batch(rows)
-            r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(rows), config.resolution),
-                              background=1.0)
-            area = _above_neck(avatar, r.vertices, K, config.resolution)
-            m = (batch["mask"] * area)[..., None]
-            gt = batch["image"] * m + (1 - m)
-            pred = r.rgb * area[..., None] + (1 - area[..., None].float())
+            r, pred, gt, area = composites(avatar, batch, K, config)
             se = ((pred - gt) ** 2).mean(-1)
             ours, theirs = r.coverage > 0.5, batch["mask"] > 0.5
             sets = {"both": ours & theirs, "gt_only": ~ours & theirs, "avatar_only": ours & ~theirs,

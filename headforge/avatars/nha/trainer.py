@@ -373,6 +373,20 @@ def validate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_di
 
 
 @torch.no_grad()
+def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig):
+    """(render, avatar image, GT image, area) of a batch as :func:`evaluate` scores it: images
+    (B, H, W, 3) on white, the GT cut by its mask, both by ``area`` (B, H, W), the rows above the
+    neck cut; ``render`` holds the avatar's coverage and vertices."""
+    r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(batch["index"]), config.resolution),
+                      background=1.0)
+    area = _above_neck(avatar, r.vertices, K, config.resolution)
+    m = (batch["mask"] * area)[..., None]
+    gt = batch["image"] * m + (1 - m)
+    pred = r.rgb * area[..., None] + (1 - area[..., None].float())
+    return r, pred, gt, area
+
+
+@torch.no_grad()
 def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_dir: Path | None = None,
              max_images: int = 6) -> dict:
     """PSNR / SSIM / L1 on the frames, both images composited on white with the GT mask above
@@ -384,12 +398,7 @@ def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_di
     saved = 0
     for rows in torch.arange(len(data)).split(config.batch):
         batch = data.batch(rows)
-        params = avatar.frame_params(batch["index"])
-        r = avatar.render(params, _cameras(K, len(rows), config.resolution), background=1.0)
-        area = _above_neck(avatar, r.vertices, K, config.resolution)
-        m = (batch["mask"] * area)[..., None]
-        gt = batch["image"] * m + (1 - m)
-        pred = r.rgb * area[..., None] + (1 - area[..., None].float())
+        _, pred, gt, _ = composites(avatar, batch, K, config)
         for b in range(len(rows)):
             vals["psnr"].append(psnr(pred[b:b + 1], gt[b:b + 1]).item())
             vals["ssim"].append(ssim(pred[b:b + 1], gt[b:b + 1]).item())
