@@ -20,7 +20,14 @@ from pathlib import Path
 
 import torch
 
-from headforge.avatars.nha.trainer import FrameData, _subset, composites, load_run, test_time_optimise
+from headforge.avatars.nha.trainer import (
+    FrameData,
+    _subset,
+    composites,
+    load_run,
+    test_time_optimise,
+)
+from headforge.errors import HeadforgeError
 
 
 def main() -> None:
@@ -61,4 +68,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except HeadforgeError as err:  # a wrong run folder: one line, no traceback
+        raise SystemExit(f"error: {err}") from None
