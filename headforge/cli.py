@@ -191,9 +191,11 @@ def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headf
             output: Path = typer.Option(..., "-o", "--output", help="run folder (resumed when it exists)"),
             preset: str = typer.Option("quick", help="quick (CPU) or paper (GPU-sized)"),
             iterations: Optional[int] = typer.Option(None, help="scale the 3-stage schedule to this many iterations"),
-            resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)")) -> None:
+            resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)"),
+            device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
     """Neural Head Avatars: geometry MLP offsets + neural texture on the tracked head model."""
     from headforge.avatars.nha.trainer import NHAConfig, fit
+    from headforge.devices import resolve_device
 
     if preset not in ("quick", "paper"):
         raise HeadforgeError(f"--preset must be quick or paper, got {preset!r}")
@@ -204,8 +206,10 @@ def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headf
         config.resolution = resolution
     if iterations is not None:
         config.scale_schedule(iterations)
+    target = resolve_device(device)
     with _Bars() as bars:
-        metrics = fit(dataset, output, config, log=_progress, progress=bars.factory("training", config.total_iters))
+        metrics = fit(dataset, output, config, log=_progress, progress=bars.factory("training", config.total_iters),
+                      device=target)
     console.print(f"run written to {output}/ (checkpoint, progress.png, val/, metrics.json)")
     print(json.dumps(metrics))
 
@@ -335,7 +339,8 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
 @app.command("demo")
 def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
          video: Optional[Path] = typer.Option(None, help="use this video (first 300 frames) instead of a synthetic subject"),
-         iterations: int = typer.Option(900, help="NHA training iterations (the quick preset's schedule, scaled)")) -> None:
+         iterations: int = typer.Option(900, help="NHA training iterations (the quick preset's schedule, scaled)"),
+         device: str = typer.Option("auto", help="NHA training device: auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
     """The main job end to end on the embedded default: synth one small subject (or track
     --video) -> fit a Neural Head Avatar (quick) -> render val frames, a novel-view orbit and
     the turntable -> evaluate (images; geometry against GT for the synthetic subject). Writes a
@@ -352,7 +357,10 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
     from headforge.render.io import write_mp4, write_png
     from headforge.render.turntable import turntable_frames
 
+    from headforge.devices import resolve_device
+
     NHAConfig.quick().scale_schedule(iterations)  # checks --iterations before any work
+    resolve_device(device)  # and --device
     start_all = time.perf_counter()
     tmp = output.with_name(output.name + ".partial")
     tmp.mkdir(parents=True, exist_ok=True)  # kept between attempts: synth/track/fit resume
@@ -382,7 +390,8 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
         config = NHAConfig.quick()
         config.scale_schedule(iterations)
         config.val_every = max(1, iterations // 4)
-        nha = fit(dataset, tmp / "nha", config, log=_progress, progress=bars.factory("training", config.total_iters))
+        nha = fit(dataset, tmp / "nha", config, log=_progress, progress=bars.factory("training", config.total_iters),
+                  device=resolve_device(device))
         metrics.update({f"nha_{k}": v for k, v in nha.items() if k != "dataset"})
     _progress("3/4 rendering: validation frames, a novel-view orbit, the exported mesh, the head model turntable")
     from headforge.avatars.nha.trainer import load_run

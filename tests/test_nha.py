@@ -224,3 +224,19 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
         fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])
     assert res.exit_code != 0 and "--preset" in str(res.exception)
+
+
+def test_device_choice_is_checked(tmp_path, monkeypatch):
+    from headforge.cli import app
+    from headforge.devices import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == torch.device("cpu") and resolve_device("cpu") == torch.device("cpu")
+    with pytest.raises(HeadforgeError, match="sees no CUDA GPU"):
+        resolve_device("cuda")
+    for bad in ("gpu", "mps"):
+        with pytest.raises(HeadforgeError, match="auto, cpu or cuda"):
+            resolve_device(bad)
+    res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--device", "cuda"])
+    assert res.exit_code != 0 and "no CUDA GPU" in str(res.exception)
+    assert not (tmp_path / "r").exists()

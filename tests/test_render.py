@@ -75,6 +75,33 @@ def test_numba_rasterizer_equals_torch_reference():
     np.testing.assert_allclose(ref[2].numpy()[both], fast[2][both], atol=1e-9)
 
 
+@pytest.mark.parametrize("chunk_pairs", [1 << 22, 997])
+def test_torch_rasterizer_equals_numba_kernel_bit_for_bit(chunk_pairs):
+    """The CUDA path's vectorised z-buffer against the numba kernel: same faces, barycentrics
+    and depths (same float64 arithmetic), also when the pairs are cut into many chunks and with
+    NaN, behind-the-camera, degenerate and off-screen triangles in the batch."""
+    v, f = _sphere(3)
+    extra = torch.tensor([[[-0.05, -0.05, 0.05], [0.08, -0.02, 0.12], [0.0, 0.09, 0.02],  # cuts the sphere
+                           [float("nan"), 0, 0], [0, 0, 1.0], [0.01, 0.0, 0.0],  # NaN vertex
+                           [0, 0, 0.6], [0.01, 0, 0.6], [0, 0.01, 0.6],  # behind the camera (distance 0.5)
+                           [0, 0, 0], [0.01, 0.01, 0], [0.02, 0.02, 0],  # degenerate
+                           [5, 5, 0], [5.1, 5, 0], [5, 5.1, 0]]], dtype=torch.float64)  # off-screen
+    n = v.shape[1]
+    v = torch.cat([v, extra], 1)
+    f = torch.cat([f, torch.arange(n, n + 15).reshape(5, 3)])
+    cams = _cams(40, B=3)
+    xyz = cams.project(v.expand(3, -1, -1))
+    fast = kernels.rasterize_numba(xyz.numpy(), f.numpy(), 40, 40)
+    vec = kernels.rasterize_torch(xyz, f, 40, 40, chunk_pairs=chunk_pairs)
+    np.testing.assert_array_equal(vec[0].numpy(), fast[0])
+    np.testing.assert_array_equal(vec[1].numpy(), fast[1])
+    np.testing.assert_array_equal(vec[2].numpy(), fast[2])
+    assert (fast[0] == len(f) - 5).any() and not np.isin(fast[0], np.arange(len(f) - 4, len(f))).any()
+    via_mesh = mesh.rasterize(cams, v.expand(3, -1, -1), f, backend="torch")
+    np.testing.assert_array_equal(via_mesh.face_id.numpy(), fast[0])
+    assert mesh.rasterize(cams, v.expand(3, -1, -1), torch.zeros(0, 3, dtype=torch.long), backend="torch").face_id.eq(-1).all()
+
+
 def test_differentiable_barycentrics_equal_the_rasterizer():
     v, f = _sphere(3)
     cams = _cams(64)

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from headforge.render.camera import Cameras
-from headforge.render.kernels import rasterize_numba
+from headforge.render.kernels import rasterize_numba, rasterize_torch
 
 
 @dataclass
@@ -51,18 +51,27 @@ def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor, cameras: Cameras) -
         raise ValueError("faces index outside the vertices")
 
 
-def rasterize(cameras: Cameras, vertices: torch.Tensor, faces: torch.Tensor, near: float = 1e-3) -> Fragments:
+def rasterize(cameras: Cameras, vertices: torch.Tensor, faces: torch.Tensor, near: float = 1e-3,
+              backend: str = "auto") -> Fragments:
     """Visibility of ``vertices`` (B, V, 3, world) with ``faces`` (F, 3) from ``cameras``.
 
     Triangles with a vertex closer than ``near`` metres, NaN vertices, and degenerate triangles
-    are skipped (no clipping). Uses the numba kernel; see kernels.rasterize_reference.
+    are skipped (no clipping). ``backend``: "numba" (the CPU kernel), "torch" (the same z-buffer
+    vectorised in PyTorch, run on the vertices' device) or "auto": numba for CPU tensors, torch
+    for any other device, so a CUDA run never copies meshes to the host. Both give identical
+    fragments (tests/test_render.py).
     """
     _check_mesh(vertices, faces, cameras)
+    if backend not in ("auto", "numba", "torch"):
+        raise ValueError(f"backend must be auto, numba or torch, got {backend!r}")
     with torch.no_grad():
         xyz = cameras.project(vertices.detach())
+    device, dtype = vertices.device, vertices.dtype
+    if backend == "torch" or (backend == "auto" and device.type != "cpu"):
+        face_id, bary, depth = rasterize_torch(xyz, faces, cameras.height, cameras.width, near)
+        return Fragments(face_id, bary.to(dtype), depth.to(dtype))
     face_id, bary, depth = rasterize_numba(xyz.double().cpu().numpy(), faces.cpu().numpy(),
                                            cameras.height, cameras.width, near)
-    device, dtype = vertices.device, vertices.dtype
     return Fragments(torch.from_numpy(face_id).to(device), torch.from_numpy(bary).to(device, dtype),
                      torch.from_numpy(depth).to(device, dtype))
 

@@ -100,7 +100,7 @@ class NeuralHeadAvatar(nn.Module):
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
         """(B, V, 3): static offsets everywhere, neck-pose dependent ones on the neck."""
         B = neck_pose.shape[0]
-        static = self.geometry_net(self.positions, torch.zeros(1, 3, dtype=neck_pose.dtype))
+        static = self.geometry_net(self.positions, neck_pose.new_zeros(1, 3))
         if B == 0:
             return static
         dynamic = self.geometry_net(self.positions, neck_pose)
@@ -131,7 +131,7 @@ class NeuralHeadAvatar(nn.Module):
         if landmarks is not None and self.has_lips:
             d = torch.stack([(landmarks[:, a] - landmarks[:, b]).norm(dim=-1) for a, b in LIP_PAIRS], -1) * 100
         else:
-            d = torch.zeros(params["jaw_pose"].shape[0], len(LIP_PAIRS), dtype=params["jaw_pose"].dtype)
+            d = params["jaw_pose"].new_zeros(params["jaw_pose"].shape[0], len(LIP_PAIRS))
         return torch.cat([params["jaw_pose"], d], -1)
 
     # ---- rendering -----------------------------------------------------------------------
@@ -143,7 +143,7 @@ class NeuralHeadAvatar(nn.Module):
         bary = mesh.barycentrics(frags, cameras, verts, faces)
         B, H, W = frags.face_id.shape
         hit = frags.face_id >= 0
-        rgb = torch.full((B, H, W, 3), background, dtype=verts.dtype)
+        rgb = verts.new_full((B, H, W, 3), background)
         if texture and hit.any():
             fid = frags.face_id[hit]
             b = bary[hit]  # (N, 3)

@@ -135,6 +135,12 @@ class FrameData:
     def __len__(self) -> int:
         return len(self.index)
 
+    def to(self, device: torch.device | str) -> "FrameData":
+        """Move images, masks, landmarks, indices and intrinsics to ``device`` (in place)."""
+        for key in ("images", "masks", "landmarks", "index", "K"):
+            setattr(self, key, getattr(self, key).to(device))
+        return self
+
     def batch(self, rows: torch.Tensor) -> dict:
         return {"image": self.images[rows].float() / 255, "mask": self.masks[rows].float() / 255,
                 "landmarks": self.landmarks[rows], "index": self.index[rows]}
@@ -143,7 +149,7 @@ class FrameData:
 def _cameras(K: torch.Tensor, B: int, res: int):
     from headforge.render.camera import Cameras
 
-    return Cameras(K.expand(B, 3, 3), torch.eye(3).expand(B, 3, 3), torch.zeros(B, 3), res, res)
+    return Cameras(K.expand(B, 3, 3), torch.eye(3, device=K.device).expand(B, 3, 3), K.new_zeros(B, 3), res, res)
 
 
 def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
@@ -152,7 +158,7 @@ def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch
     ring = verts[:, avatar.neck_ring]
     y = (ring[..., 1] / ring[..., 2]) * K[1, 1] + K[1, 2]
     cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
-    rows = torch.arange(res, dtype=verts.dtype)[None, :, None]
+    rows = torch.arange(res, dtype=verts.dtype, device=verts.device)[None, :, None]
     return (rows < cut[:, None, None]).expand(-1, -1, res)
 
 
@@ -166,7 +172,7 @@ def mask_outline(mask: torch.Tensor, area: torch.Tensor, max_points: int = 3000)
     for b in range(len(m)):
         yx = torch.nonzero(edge[b]).float()
         if len(yx) > max_points:
-            yx = yx[torch.linspace(0, len(yx) - 1, max_points).long()]
+            yx = yx[torch.linspace(0, len(yx) - 1, max_points, device=yx.device).long()]
         out.append(yx.flip(-1))
     return out
 
@@ -285,7 +291,7 @@ def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
     from safetensors.torch import save_file
 
     tmp = run / "checkpoint.tmp.safetensors"
-    save_file({k: v.detach().contiguous() for k, v in avatar.state_dict().items()}, str(tmp))
+    save_file({k: v.detach().cpu().contiguous() for k, v in avatar.state_dict().items()}, str(tmp))
     opt_tmp = run / "optimisers.tmp.pt"
     torch.save({k: o.state_dict() for k, o in optimisers.items()}, opt_tmp)
     tmp.replace(run / "checkpoint.safetensors")
@@ -293,8 +299,8 @@ def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
     (run / "state.json").write_text(json.dumps(state))
 
 
-def load_run(run: Path):
-    """(avatar, config, meta) of a finished or checkpointed run folder."""
+def load_run(run: Path, device: torch.device | str = "cpu"):
+    """(avatar, config, meta) of a finished or checkpointed run folder, the avatar on ``device``."""
     cfg_path = run / "config.json"
     if not cfg_path.is_file():
         raise HeadforgeError(f"{run} is not a headforge run (config.json missing)")
@@ -307,7 +313,7 @@ def load_run(run: Path):
     if not ckpt.is_file():
         raise HeadforgeError(f"{ckpt} is missing")
     _load_weights(avatar, ckpt)
-    return avatar, config, meta
+    return avatar.to(device), config, meta
 
 
 def _load_weights(avatar, path: Path) -> None:
@@ -409,8 +415,10 @@ def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_di
     return {k: float(np.mean(v)) for k, v in vals.items()} | {"frames": len(data)}
 
 
-def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, progress=None) -> dict:
-    """Train; resumes from RUN's checkpoint when its config matches."""
+def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, progress=None,
+        device: torch.device | str = "cpu") -> dict:
+    """Train on ``device`` ("cpu", "cuda", ...); resumes from RUN's checkpoint when its config
+    matches (also on another device: checkpoints are written from host copies)."""
     dataset, run = Path(dataset).resolve(), Path(run)
     torch.manual_seed(config.seed)
     info = {"format": RUN_FORMAT, "method": "nha", "dataset": str(dataset), "config": asdict(config)}
@@ -420,17 +428,18 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
         if previous != json.loads(json.dumps(info)):
             raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
     avatar, meta = build_avatar(dataset, config)  # reads and checks the dataset first
-    train = FrameData(dataset, "train", config.resolution)
-    val_all = FrameData(dataset, "val", config.resolution)
+    train = FrameData(dataset, "train", config.resolution).to(device)
+    val_all = FrameData(dataset, "val", config.resolution).to(device)
     run.mkdir(parents=True, exist_ok=True)
     (run / "config.json").write_text(json.dumps(info, indent=1))
     (run / "val").mkdir(exist_ok=True)
     K = train.K
+    avatar.to(device)  # before the optimisers: they hold the parameters they were given
     optimisers = _optimisers(avatar, config)
     state = {"iteration": 0, "seconds": 0.0}
     if resume:
         _load_weights(avatar, run / "checkpoint.safetensors")
-        for k, sd in torch.load(run / "optimisers.pt", weights_only=False).items():
+        for k, sd in torch.load(run / "optimisers.pt", map_location="cpu", weights_only=False).items():
             optimisers[k].load_state_dict(sd)
         state = json.loads((run / "state.json").read_text())
         log(f"resuming {run} at iteration {state['iteration']}")
@@ -485,7 +494,7 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     scores = evaluate(avatar, val_all, K, config, run / "val", max_images=8)
     if (dataset / "gt" / "geometry.safetensors").is_file():
         export_geometry(avatar, dataset, run / "geometry.safetensors")
-    metrics = {"train_minutes": round(train_seconds / 60, 2), "val_psnr": round(scores["psnr"], 3),
+    metrics = {"train_minutes": round(train_seconds / 60, 2), "device": str(torch.device(device)), "val_psnr": round(scores["psnr"], 3),
                "val_ssim": round(scores["ssim"], 4), "val_l1": round(scores["l1"], 4), "val_frames": scores["frames"],
                "iterations": config.total_iters, "resolution": config.resolution,
                "lpips": "n/a (no pretrained weights)", "dataset": str(dataset)}
@@ -506,12 +515,12 @@ def export_geometry(avatar, dataset: Path, path: Path) -> None:
                        for chunk in np.array_split(frames, max(1, len(frames) // 8))])
     head = avatar.head
     face = np.zeros(head.num_vertices, bool)
-    face[head.region("face").numpy()] = True
+    face[head.region("face").cpu().numpy()] = True
     head_mask = np.ones(head.num_vertices, bool)
     if "neck" in head.region_names:
-        head_mask[head.region("neck").numpy()] = False
-    save_file({"frames": frames.astype(np.int64), "vertices": verts.numpy().astype(np.float32),
-               "faces": head.faces.numpy().astype(np.int64), "face_vertices": face, "head_vertices": head_mask},
+        head_mask[head.region("neck").cpu().numpy()] = False
+    save_file({"frames": frames.astype(np.int64), "vertices": verts.cpu().numpy().astype(np.float32),
+               "faces": head.faces.cpu().numpy().astype(np.int64), "face_vertices": face, "head_vertices": head_mask},
               str(path))
 
 

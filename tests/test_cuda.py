@@ -1,0 +1,104 @@
+"""CUDA paths against the CPU: the vectorised rasterizer, NHA's energies and gradients, and a
+training run that checkpoints on the GPU and resumes on the CPU. Skipped without a CUDA GPU
+(CI has none; run them where one is: ``pytest tests/test_cuda.py``).
+
+``HEADFORGE_TEST_DATASET`` may name a tracked dataset to use instead of making the synthetic
+one (which needs MediaPipe)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+
+
+@pytest.fixture(scope="module")
+def dataset(request) -> Path:
+    given = os.environ.get("HEADFORGE_TEST_DATASET")
+    if given:
+        return Path(given)
+    return request.getfixturevalue("synth_bench")[0] / "subject_00"
+
+
+@pytest.fixture(scope="module")
+def tiny_config():
+    from headforge.avatars.nha.trainer import NHAConfig
+
+    config = NHAConfig.quick()
+    config.resolution = 128
+    config.geometry_iters, config.texture_iters, config.joint_iters = 4, 2, 2
+    config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps, config.align_steps = 2, 4, 2, 2, 2
+    return config
+
+
+def test_rasterizer_on_cuda_equals_the_numba_kernel(open_head):
+    from headforge.render import mesh
+    from headforge.render.camera import Cameras, look_at_head
+
+    verts = open_head(shape=torch.zeros(2, open_head.n_shape)).vertices.double()
+    cams = Cameras.from_pinhole([look_at_head(256, 256, distance=0.5, yaw_deg=y) for y in (0, 40)], torch.float64)
+    cpu = mesh.rasterize(cams, verts, open_head.faces)
+    gpu = mesh.rasterize(cams.to("cuda"), verts.cuda(), open_head.faces.cuda())
+    assert gpu.face_id.is_cuda
+    same = (gpu.face_id.cpu() == cpu.face_id).double().mean().item()
+    assert same > 0.9999, same
+    both = (gpu.face_id.cpu() == cpu.face_id) & cpu.mask
+    np.testing.assert_allclose(gpu.bary.cpu()[both].numpy(), cpu.bary[both].numpy(), atol=1e-9)
+    np.testing.assert_allclose(gpu.depth.cpu()[both].numpy(), cpu.depth[both].numpy(), atol=1e-9)
+
+
+def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
+    from headforge.avatars.nha.trainer import FrameData, build_avatar, losses
+
+    torch.manual_seed(0)
+    avatar, _ = build_avatar(dataset, tiny_config)
+    data = FrameData(dataset, "train", tiny_config.resolution)
+    on_gpu = copy.deepcopy(avatar).cuda()
+    data_gpu = copy.deepcopy(data).to("cuda")
+    rows = torch.tensor([0, 1])
+    cpu_terms = losses(avatar, data.batch(rows), data.K, tiny_config, "joint")
+    gpu_terms = losses(on_gpu, data_gpu.batch(rows), data_gpu.K, tiny_config, "joint")
+    assert cpu_terms.keys() == gpu_terms.keys()
+    for k in cpu_terms:
+        assert gpu_terms[k].is_cuda
+        assert torch.allclose(gpu_terms[k].cpu(), cpu_terms[k], rtol=2e-3, atol=1e-6), (k, cpu_terms[k], gpu_terms[k])
+    sum(cpu_terms.values()).backward()
+    sum(gpu_terms.values()).backward()
+    for (name, p), q in zip(avatar.named_parameters(), on_gpu.parameters()):
+        if p.grad is None:
+            assert q.grad is None or q.grad.abs().max() == 0, name
+            continue
+        err = (q.grad.cpu() - p.grad).norm() / p.grad.norm().clamp(min=1e-12)
+        assert err < 2e-2, (name, float(err))
+
+
+def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path):
+    from headforge.avatars.nha.trainer import FrameData, evaluate, fit, load_run
+
+    run = tmp_path / "run"
+    calls = {"n": 0}
+
+    def interrupt():
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt, device="cuda")
+    state = json.loads((run / "state.json").read_text())
+    assert state["iteration"] == 4 and state["aligned"] > 0
+    metrics = fit(dataset, run, tiny_config, log=lambda m: None, device="cpu")
+    assert metrics["device"] == "cpu" and 5 < metrics["val_psnr"] < 60
+    avatar, config, _ = load_run(run, "cuda")
+    assert next(avatar.parameters()).is_cuda
+    val = FrameData(dataset, "val", config.resolution)
+    on_gpu = evaluate(avatar, copy.deepcopy(val).to("cuda"), val.K.cuda(), config)
+    on_cpu = evaluate(avatar.cpu(), val, val.K, config)
+    assert abs(on_gpu["psnr"] - on_cpu["psnr"]) < 0.05, (on_gpu, on_cpu)
