@@ -240,3 +240,37 @@ def test_device_choice_is_checked(tmp_path, monkeypatch):
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--device", "cuda"])
     assert res.exit_code != 0 and "no CUDA GPU" in str(res.exception)
     assert not (tmp_path / "r").exists()
+
+
+def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_config, tmp_path, monkeypatch):
+    """Alignment checkpoints every ALIGN_CHECKPOINT_FRAMES frames: a kill in the middle of it
+    loses at most that many frames' alignment, and the resumed run aligns only the rest."""
+    from headforge.avatars.nha import trainer
+
+    dataset = synth_bench[0] / "subject_00"
+    config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1})
+    monkeypatch.setattr(trainer, "ALIGN_CHECKPOINT_FRAMES", 4)
+    real = trainer.align_frames
+    chunks, die = [], {"at": 2}
+
+    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+        if rows is not None:  # training-frame alignment (validation fits pass no rows)
+            chunks.append(rows.tolist())
+            if len(chunks) == die["at"]:
+                raise KeyboardInterrupt
+        return real(avatar, data, K, cfg, steps, photometric_steps, rows)
+
+    monkeypatch.setattr(trainer, "align_frames", recording)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        trainer.fit(dataset, run, config, log=lambda m: None)
+    state = json.loads((run / "state.json").read_text())
+    assert (state["iteration"], state["aligned"]) == (config.geometry_iters, 4)
+    chunks.clear()
+    die["at"] = -1
+    logs = []
+    trainer.fit(dataset, run, config, log=logs.append)
+    n_train = len(trainer.FrameData(dataset, "train", config.resolution))
+    assert chunks[0] == [4, 5, 6, 7] and chunks[-1][-1] == n_train - 1 and len(chunks) == -(-(n_train - 4) // 4)
+    assert any(f"aligning training frames 4..{n_train}" in m for m in logs)
+    assert json.loads((run / "state.json").read_text())["aligned"] == n_train

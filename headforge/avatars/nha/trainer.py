@@ -34,6 +34,7 @@ import torch
 from headforge.errors import HeadforgeError
 
 RUN_FORMAT = "headforge-run"
+ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
 
 
 @dataclass
@@ -454,7 +455,7 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     while it < config.total_iters:
         if it == config.geometry_iters and config.align_steps > 0 and aligned < len(train):
             log(f"aligning training frames {aligned}..{len(train)} on their own ({config.align_steps} steps each)")
-            for chunk in torch.arange(aligned, len(train)).split(100 * config.batch):
+            for chunk in torch.arange(aligned, len(train)).split(ALIGN_CHECKPOINT_FRAMES):
                 align_frames(avatar, train, K, config, config.align_steps, rows=chunk)
                 aligned = int(chunk[-1]) + 1
                 save_checkpoint(run, avatar, optimisers,
