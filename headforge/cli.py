@@ -239,7 +239,7 @@ def render_avatar(run: Path = typer.Argument(..., help="a run folder of headforg
             raise HeadforgeError(f"{driving} was tracked with {dmeta['model']}, the avatar uses {meta['model']}")
         tracked = load_file(str(driving / "tracking.safetensors"))
         rows = [r["index"] for r in dmeta["frames"] if r["valid"]]
-        seq = {k: tracked[k][rows].float() for k in FRAME_KEYS}
+        seq = {k: v[rows] for k, v in avatar.params_from_tracking(tracked).items()}
         # keep the avatar's own framing: its mean translation, the driver's motion around it
         own = avatar.frames["translation"].detach()
         seq["translation"] = seq["translation"] - seq["translation"].mean(0) + own.mean(0)

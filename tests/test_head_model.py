@@ -102,6 +102,16 @@ def test_tanh_joint_limits_bound_rotations(tiny_data):
     assert torch.equal(limited[0][~finite], torch.full_like(limited[0][~finite], 100.0))
     small = torch.full((1, 5, 3), 1e-3)
     torch.testing.assert_close(lbs.limit_joint_rotations(small, half), small, atol=1e-8, rtol=1e-3)
+    # the inverse: raw parameters that reproduce tracked (unlimited) poses through the limits
+    poses = {"root_pose": torch.tensor([[0.3, -2.0, 0.1]]), "neck_pose": torch.tensor([[0.4, -0.7, 0.2]]),
+             "jaw_pose": torch.tensor([[0.25, 0.0, -0.05]])}
+    raw = model.effective_poses(poses, raw=True)
+    assert not torch.allclose(raw["neck_pose"], poses["neck_pose"])
+    assert torch.equal(raw["root_pose"], poses["root_pose"])  # the root is free
+    for k, v in model.effective_poses(raw).items():
+        torch.testing.assert_close(v, poses[k], atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(model(**raw).vertices, HeadModel(tiny_data)(**poses).vertices, atol=1e-6, rtol=1e-5)
+    assert HeadModel(tiny_data).effective_poses(poses) == poses
 
 
 def test_batched_matches_single(tiny_data):

@@ -92,6 +92,54 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
 
 
+def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_config):
+    """With NHA's tanh joint limits the frame poses are raw parameters; they start where the
+    limited poses equal the tracked ones, so a fresh avatar (zero offsets) is posed exactly
+    like the tracked head model, and driving sequences are converted the same way."""
+    from safetensors.torch import load_file
+
+    from headforge.avatars.nha.model import POSE_KEYS
+    from headforge.avatars.nha.trainer import build_avatar
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    assert avatar.head.joint_limits
+    tracked = load_file(str(dataset / "tracking.safetensors"))
+    rows = torch.arange(3)
+    with torch.no_grad():
+        torch.nn.init.zeros_(avatar.geometry_net.head.weight)
+        torch.nn.init.zeros_(avatar.geometry_net.head.bias)
+        params = avatar.frame_params(rows)
+        assert not torch.allclose(params["neck_pose"], tracked["neck_pose"][rows].float())  # raw, not tracked
+        verts, _, offsets = avatar.pose(params)
+        assert offsets.abs().max() == 0
+        avatar.head.joint_limits = False  # the same model without limits, fed the tracked poses
+        ref = avatar.head(shape=avatar.shape.expand(3, -1), expression=tracked["expression"][rows].float(),
+                          **{k: tracked[k][rows].float() for k in POSE_KEYS}).vertices
+        avatar.head.joint_limits = True
+    ref = ref * torch.tensor([1.0, -1.0, -1.0]) + tracked["translation"][rows].float()[:, None]
+    torch.testing.assert_close(verts, ref, atol=2e-6, rtol=1e-4)
+    driven = avatar.params_from_tracking(tracked)
+    assert all(torch.allclose(driven[k], avatar.frames[k].detach()) for k in driven)
+
+
+def test_eyelid_term_measures_the_eye_opening():
+    from headforge.avatars.nha.model import EYELID_PAIRS
+    from headforge.avatars.nha.trainer import eyelid_term
+
+    torch.manual_seed(0)
+    detected = torch.rand(2, 478, 2) * 200
+    assert eyelid_term(detected.clone(), detected) == 0
+    assert eyelid_term(detected + torch.tensor([5.0, -3.0]), detected) < 1e-4  # a shift keeps the opening
+    closed = detected.clone()
+    for up, lo in EYELID_PAIRS:
+        closed[:, up] = closed[:, lo]  # a blink in the detections
+    assert eyelid_term(detected, closed) > 1.0
+    missing = detected.clone()
+    missing[0, EYELID_PAIRS[0][0]] = float("nan")  # an undetected landmark does not count
+    assert torch.isfinite(eyelid_term(detected, missing))
+
+
 def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, tiny_config):
     from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar
     from headforge.head.topology import vertex_normals

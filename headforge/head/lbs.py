@@ -47,6 +47,15 @@ def limit_joint_rotations(pose: torch.Tensor, half_range: torch.Tensor) -> torch
     return torch.where(finite, limited, pose)
 
 
+def unlimit_joint_rotations(pose: torch.Tensor, half_range: torch.Tensor, margin: float = 1e-3) -> torch.Tensor:
+    """Inverse of :func:`limit_joint_rotations`: the raw axis-angles (B, J, 3) whose limited
+    values are ``pose`` (angles at or beyond a limit map to ``1 - margin`` of it)."""
+    finite = torch.isfinite(half_range)
+    safe = torch.where(finite, half_range, torch.ones_like(half_range))
+    raw = safe * torch.atanh((pose / safe).clamp(-1 + margin, 1 - margin))
+    return torch.where(finite, raw, pose)
+
+
 def rigid_transforms(
     rotmats: torch.Tensor, joints: torch.Tensor, parents: Sequence[int] | torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:

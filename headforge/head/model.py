@@ -221,6 +221,20 @@ class HeadModel(torch.nn.Module):
     def num_landmarks(self) -> int:
         return 0 if self.landmark_faces is None else int(self.landmark_faces.shape[0])
 
+    def effective_poses(self, poses: dict[str, torch.Tensor], raw: bool = False) -> dict[str, torch.Tensor]:
+        """The joint rotations the skinning uses for ``poses`` ({root_pose: (B, 3), ...}, any
+        subset of POSE_ARGS): the tanh-limited values when this model has ``joint_limits``, else
+        ``poses`` unchanged. ``raw=True`` inverts it: the raw parameters whose limited values are
+        ``poses`` (to start an optimisation with limits from poses tracked without them)."""
+        if not self.joint_limits:
+            return dict(poses)
+        fn = lbs_fn.unlimit_joint_rotations if raw else lbs_fn.limit_joint_rotations
+        out = {}
+        for name, value in poses.items():
+            j = POSE_ARGS.index(name)
+            out[name] = fn(value[:, None], self.joint_half_range[j:j + 1].to(value))[:, 0]
+        return out
+
     def region(self, name: str) -> torch.Tensor:
         """Vertex ids (long) of a named region, e.g. 'face', 'scalp', 'eyeballs'."""
         if name not in self.region_names:

@@ -22,6 +22,9 @@ from headforge.render.camera import Cameras
 FLIP = torch.tensor([1.0, -1.0, -1.0])
 FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
 LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
+# MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
+EYELID_PAIRS = ((159, 145), (158, 153), (160, 144), (386, 374), (385, 380), (387, 373))
+POSE_KEYS = ("root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose")
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
 LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}
@@ -49,13 +52,14 @@ class Rendered:
 class NeuralHeadAvatar(nn.Module):
     def __init__(self, template: HeadModelData, tracking: dict[str, torch.Tensor], config):
         super().__init__()
-        self.head = HeadModel(template, joint_limits=False)
+        # NHA's tanh joint limits: frame poses are raw parameters, the skinning sees the limited ones
+        self.head = HeadModel(template, joint_limits=config.joint_limits)
         V = self.head.num_vertices
         rest = torch.as_tensor(template.v_template, dtype=torch.float32)
         centre, scale = rest.mean(0), (rest - rest.mean(0)).abs().max()
         self.register_buffer("positions", (rest - centre) / scale)  # template in [-1, 1]
         self.shape = nn.Parameter(tracking["shape"].float().clone()[:, : self.head.n_shape])
-        self.frames = nn.ParameterDict({k: nn.Parameter(tracking[k].float().clone()) for k in FRAME_KEYS})
+        self.frames = nn.ParameterDict({k: nn.Parameter(v) for k, v in self.params_from_tracking(tracking).items()})
         self.geometry_net = GeometryNet(V, config.embed_dim, config.geo_layers, config.geo_width, cond_dim=3,
                                         max_offset=config.max_offset)
         self.texture_net = TextureNet(config.tex_grid, config.tex_channels, config.tex_layers, config.tex_width,
@@ -106,6 +110,13 @@ class NeuralHeadAvatar(nn.Module):
         dynamic = self.geometry_net(self.positions, neck_pose)
         return static + self.neck_fade * (dynamic - static)
 
+    def params_from_tracking(self, tracked: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Frame parameters (FRAME_KEYS, (T, ...) float32) that pose this avatar as ``tracked``
+        (a dataset's tracking: poses as the skinning uses them) does: with joint limits, the
+        raw poses whose limited values are the tracked ones."""
+        params = {k: tracked[k].float().clone() for k in FRAME_KEYS}
+        return params | self.head.effective_poses({k: params[k] for k in POSE_KEYS}, raw=True)
+
     def frame_params(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         return {k: self.frames[k][idx] for k in FRAME_KEYS}
 
@@ -127,12 +138,13 @@ class NeuralHeadAvatar(nn.Module):
         return verts, lmk, offsets
 
     def mouth_condition(self, params: dict[str, torch.Tensor], landmarks: torch.Tensor | None) -> torch.Tensor:
-        """(B, 3 + 3): jaw rotation and inner-lip distances (in cm) -- NHA's mouth conditions."""
+        """(B, 3 + 3): effective (limited) jaw rotation and inner-lip distances (in cm) -- NHA's
+        mouth conditions."""
         if landmarks is not None and self.has_lips:
             d = torch.stack([(landmarks[:, a] - landmarks[:, b]).norm(dim=-1) for a, b in LIP_PAIRS], -1) * 100
         else:
             d = params["jaw_pose"].new_zeros(params["jaw_pose"].shape[0], len(LIP_PAIRS))
-        return torch.cat([params["jaw_pose"], d], -1)
+        return torch.cat([self.head.effective_poses({"jaw_pose": params["jaw_pose"]})["jaw_pose"], d], -1)
 
     # ---- rendering -----------------------------------------------------------------------
     def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,

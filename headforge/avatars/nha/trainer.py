@@ -62,6 +62,7 @@ class NHAConfig:
     lr_frames: float = 1e-3
     lr_shape: float = 1e-4
     w_landmarks: float = 1.0
+    w_eyelids: float = 1.0  # eye opening: upper-to-lower lid landmark offsets against the detections
     w_silhouette: float = 10.0
     w_contour: float = 1.0
     w_rgb: float = 1.0
@@ -78,6 +79,7 @@ class NHAConfig:
     lr_align: float = 6e-3  # Adam on rotations (rad) and expression; translation (m) gets a tenth
     tto_steps: int = 30  # per held-out frame: silhouette, outline, landmarks
     tto_photometric_steps: int = 10  # then with the photometric terms added
+    joint_limits: bool = True  # NHA's tanh joint limits (App. A.1) on the neck, jaw and eyes
     seed: int = 0
 
     @classmethod
@@ -201,6 +203,21 @@ def contour_term(avatar, vertices: torch.Tensor, gt_mask: torch.Tensor, area: to
     return torch.stack(terms).mean() / res
 
 
+def eyelid_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor:
+    """NHA's eye-lid energy: L1 between the avatar's and the detections' 2D offsets from each
+    upper to its lower eyelid landmark (EYELID_PAIRS), in pixels, over pairs detected in full.
+    The landmark term barely sees a blink (a few landmarks move a few pixels); this term
+    measures the eye opening itself. ``projected``/``detected``: (B, 478, 2) pixels."""
+    from headforge.avatars.nha.model import EYELID_PAIRS
+
+    up, lo = (torch.tensor([p[i] for p in EYELID_PAIRS], device=projected.device) for i in (0, 1))
+    opening = projected[:, up] - projected[:, lo]
+    target = detected[:, up] - detected[:, lo]
+    ok = torch.isfinite(target).all(-1)
+    diff = (opening - torch.nan_to_num(target)).abs().sum(-1)
+    return (diff * ok).sum() / ok.sum().clamp(min=1)
+
+
 def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
            params: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """Weighted energy terms of one batch. ``stage``: geometry, texture or joint (the training
@@ -225,6 +242,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         ok = torch.isfinite(lmk[:, :n]).all(-1)
         diff = (proj[:, :n] - torch.nan_to_num(lmk[:, :n])).abs().sum(-1)
         out["landmarks"] = config.w_landmarks * (diff * ok).sum() / ok.sum().clamp(min=1) / res * 10
+        if config.w_eyelids > 0 and n == 478:
+            out["eyelids"] = config.w_eyelids * eyelid_term(proj, lmk) / res * 10
     out["silhouette"] = config.w_silhouette * ((r.coverage - gt_mask).abs() * area).mean()
     if config.w_contour > 0:
         out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res)
