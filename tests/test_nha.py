@@ -98,8 +98,8 @@ def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_conf
     like the tracked head model, and driving sequences are converted the same way."""
     from safetensors.torch import load_file
 
-    from headforge.avatars.nha.model import POSE_KEYS
     from headforge.avatars.nha.trainer import build_avatar
+    from headforge.head.model import POSE_ARGS
 
     dataset = synth_bench[0] / "subject_00"
     avatar, _ = build_avatar(dataset, tiny_config)
@@ -115,7 +115,7 @@ def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_conf
         assert offsets.abs().max() == 0
         avatar.head.joint_limits = False  # the same model without limits, fed the tracked poses
         ref = avatar.head(shape=avatar.shape.expand(3, -1), expression=tracked["expression"][rows].float(),
-                          **{k: tracked[k][rows].float() for k in POSE_KEYS}).vertices
+                          **{k: tracked[k][rows].float() for k in POSE_ARGS}).vertices
         avatar.head.joint_limits = True
     ref = ref * torch.tensor([1.0, -1.0, -1.0]) + tracked["translation"][rows].float()[:, None]
     torch.testing.assert_close(verts, ref, atol=2e-6, rtol=1e-4)

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
-from headforge.head.model import HeadModel, HeadModelData
+from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
 from headforge.render.camera import Cameras
@@ -24,7 +24,6 @@ FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose
 LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
 # MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
 EYELID_PAIRS = ((159, 145), (158, 153), (160, 144), (386, 374), (385, 380), (387, 373))
-POSE_KEYS = ("root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose")
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
 LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}
@@ -115,7 +114,7 @@ class NeuralHeadAvatar(nn.Module):
         (a dataset's tracking: poses as the skinning uses them) does: with joint limits, the
         raw poses whose limited values are the tracked ones."""
         params = {k: tracked[k].float().clone() for k in FRAME_KEYS}
-        return params | self.head.effective_poses({k: params[k] for k in POSE_KEYS}, raw=True)
+        return params | self.head.effective_poses({k: params[k] for k in POSE_ARGS}, raw=True)
 
     def frame_params(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         return {k: self.frames[k][idx] for k in FRAME_KEYS}
