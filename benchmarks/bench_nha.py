@@ -75,4 +75,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from headforge.errors import HeadforgeError
+
+    try:
+        main()
+    except HeadforgeError as err:  # e.g. --device cuda without a GPU, a wrong dataset: one line
+        raise SystemExit(f"error: {err}") from None

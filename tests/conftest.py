@@ -91,3 +91,20 @@ def synth_bench(tmp_path_factory, open_head_data):
                            novel_yaws=(20.0,))
     report = S.synthesize(out, config, log=lambda m: None)
     return out, config, report
+
+
+@pytest.fixture
+def interrupt_after():
+    """``interrupt_after(n)``: a training progress callback that raises KeyboardInterrupt on its
+    n-th call (a run killed after n - 1 iterations)."""
+    def make(n: int):
+        calls = {"n": 0}
+
+        def progress():
+            calls["n"] += 1
+            if calls["n"] == n:
+                raise KeyboardInterrupt
+
+        return progress
+
+    return make

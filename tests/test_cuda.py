@@ -79,19 +79,12 @@ def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
         assert err < 2e-2, (name, float(err))
 
 
-def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path):
+def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path, interrupt_after):
     from headforge.avatars.nha.trainer import FrameData, evaluate, fit, load_run
 
     run = tmp_path / "run"
-    calls = {"n": 0}
-
-    def interrupt():
-        calls["n"] += 1
-        if calls["n"] == 5:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt, device="cuda")
+        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
     state = json.loads((run / "state.json").read_text())
     assert state["iteration"] == 4 and state["aligned"] > 0
     metrics = fit(dataset, run, tiny_config, log=lambda m: None, device="cpu")

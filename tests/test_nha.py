@@ -209,21 +209,14 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
     assert all(torch.equal(avatar.frames[k].detach(), v) for k, v in frames.items())
 
 
-def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path):
+def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, interrupt_after):
     from headforge.avatars.nha.trainer import fit, load_run
     from headforge.cli import app
 
     dataset = synth_bench[0] / "subject_00"
     run = tmp_path / "run"
-    calls = {"n": 0}
-
-    def interrupt():
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt)
+        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(3))
     assert json.loads((run / "state.json").read_text())["iteration"] == 2
     logs = []
     metrics = fit(dataset, run, tiny_config, log=logs.append)

@@ -24,6 +24,7 @@ FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose
 LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
 # MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
 EYELID_PAIRS = ((159, 145), (158, 153), (160, 144), (386, 374), (385, 380), (387, 373))
+EYELID_UPPER, EYELID_LOWER = (list(ids) for ids in zip(*EYELID_PAIRS))
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
 LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}

@@ -208,11 +208,10 @@ def eyelid_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor
     upper to its lower eyelid landmark (EYELID_PAIRS), in pixels, over pairs detected in full.
     The landmark term barely sees a blink (a few landmarks move a few pixels); this term
     measures the eye opening itself. ``projected``/``detected``: (B, 478, 2) pixels."""
-    from headforge.avatars.nha.model import EYELID_PAIRS
+    from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 
-    up, lo = (torch.tensor([p[i] for p in EYELID_PAIRS], device=projected.device) for i in (0, 1))
-    opening = projected[:, up] - projected[:, lo]
-    target = detected[:, up] - detected[:, lo]
+    opening = projected[:, EYELID_UPPER] - projected[:, EYELID_LOWER]
+    target = detected[:, EYELID_UPPER] - detected[:, EYELID_LOWER]
     ok = torch.isfinite(target).all(-1)
     diff = (opening - torch.nan_to_num(target)).abs().sum(-1)
     return (diff * ok).sum() / ok.sum().clamp(min=1)
