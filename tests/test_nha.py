@@ -160,6 +160,78 @@ def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, t
     assert torch.allclose(cropped, whole, atol=1e-6)
 
 
+def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_config):
+    """Against the avatar's own silhouette the outline term is about a pixel: the occluding rims
+    inside it (the nose's flanks, a cheek, the far side of the head) are left out rather than
+    pulled toward the outline, which they are far from."""
+    from headforge.avatars.nha.trainer import FrameData, _above_neck, _cameras, build_avatar, contour_term, outer_band
+    from headforge.render import mesh
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    res = tiny_config.resolution
+    data = FrameData(dataset, "val", res)
+    with torch.no_grad():
+        verts = avatar.pose(avatar.frame_params(data.index[:2]))[0]
+        covered = mesh.rasterize(_cameras(data.K, 2, res), verts, avatar.head.faces).face_id >= 0
+    band = outer_band(covered, width=2)
+    assert band[~covered].all() and not band[covered].all() and band[covered].any()
+    area = _above_neck(avatar, verts, data.K, res)
+    own = covered.float() * area
+    kept = contour_term(avatar, verts, own, area, data.K, res, covered) * res  # pixels
+    everything = contour_term(avatar, verts, own, area, data.K, res) * res
+    assert kept < 3.0
+    assert everything > 2 * kept
+
+
+def test_face_oval_masks_fill_the_detected_loop():
+    from headforge.avatars.nha.trainer import face_oval_masks
+    from headforge.head.landmarks import FACE_OVAL_LOOP
+
+    angles = torch.linspace(0, 2 * np.pi, len(FACE_OVAL_LOOP) + 1)[:-1]
+    landmarks = torch.full((3, 478, 2), 32.0)
+    landmarks[:, list(FACE_OVAL_LOOP)] = torch.stack([32 + 20 * angles.sin(), 32 - 20 * angles.cos()], -1)
+    landmarks[1, FACE_OVAL_LOOP[5]] = float("nan")  # a missing loop point: no region for that frame
+    masks, known = face_oval_masks(landmarks, 64)
+    assert known.tolist() == [True, False, True]
+    assert masks[0, 32, 32] == 255 and masks[0, 2, 2] == 0 and masks[1].max() == 0
+    area = masks[0].float().sum() / 255
+    polygon = 0.5 * len(FACE_OVAL_LOOP) * 20**2 * np.sin(2 * np.pi / len(FACE_OVAL_LOOP))
+    assert abs(area - polygon) < 0.02 * polygon  # the coverage is the polygon's, edges partial
+    assert ((masks[0] > 0) & (masks[0] < 255)).any()
+    _, known68 = face_oval_masks(torch.zeros(2, 68, 2), 64)  # iBUG landmarks: no oval loop
+    assert not known68.any()
+
+
+def test_semantic_term_compares_the_rendered_face_oval_with_the_detected_one(synth_bench, tiny_config):
+    """The avatar's face-oval region (template vertices inside the landmark loop) renders where
+    its own projected oval landmarks outline it, and the semantic term moves the geometry."""
+    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar, face_oval_masks, losses
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    head = avatar.head
+    oval = avatar.face_oval[:, 0].bool()
+    for name in ("scalp", "ears", "neck"):
+        if name in head.region_names:
+            assert not oval[head.region(name)].any()
+    assert oval[head.region("face")].float().mean() > 0.7
+    res = tiny_config.resolution
+    data = FrameData(dataset, "val", res)
+    cams = _cameras(data.K, 2, res)
+    params = avatar.frame_params(data.index[:2])
+    with torch.no_grad():
+        r = avatar.render(params, cams, texture=False, face_region=True)
+    own = face_oval_masks(r.landmarks[..., :2] / r.landmarks[..., 2:] * data.K[0, 0] + data.K[:2, 2], res)[0] > 127
+    rendered = r.face_region > 0.5
+    assert (own & rendered).sum() / (own | rendered).sum() > 0.9
+    batch = data.batch(torch.arange(2))
+    terms = losses(avatar, batch, data.K, tiny_config, "geometry")
+    assert 0 < terms["semantic"] < 0.2 * tiny_config.w_semantic
+    terms["semantic"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.geometry_net.parameters())
+
+
 def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench, tiny_config):
     """Per-frame fitting with frozen networks pulls a frame moved 15 mm sideways back toward its
     tracked pose (which fits the GT mask and landmarks of the synthetic render) and leaves the

@@ -38,10 +38,11 @@ IBUG_JAW = np.arange(17)  # jaw-contour points: silhouette-dependent, often excl
 
 # Upper/lower eyelid pairs (MediaPipe ids) for NHA's eye-lid distance term; right eye first.
 EYELID_PAIRS = np.array([[159, 145], [158, 153], [160, 144], [386, 374], [385, 380], [387, 373]])
+# MediaPipe's face-oval loop, in order around the face from the top of the forehead.
+FACE_OVAL_LOOP = (10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288, 397, 365, 379, 378, 400, 377,
+                  152, 148, 176, 149, 150, 136, 172, 58, 132, 93, 234, 127, 162, 21, 54, 103, 67, 109)
 # Face-oval (silhouette) points of MediaPipe: excluded from "inner" error figures.
-FACE_OVAL = np.array(sorted({10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288, 397,
-                             365, 379, 378, 400, 377, 152, 148, 176, 149, 150, 136, 172, 58,
-                             132, 93, 234, 127, 162, 21, 54, 103, 67, 109}))
+FACE_OVAL = np.array(sorted(FACE_OVAL_LOOP))
 
 # iBUG-68 upper/lower eyelid pairs (right eye first), for models embedding iBUG-68 (FLAME).
 IBUG_EYELID_PAIRS = np.array([[37, 41], [38, 40], [43, 47], [44, 46]])

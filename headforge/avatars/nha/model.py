@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
+from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
@@ -23,8 +24,7 @@ FLIP = torch.tensor([1.0, -1.0, -1.0])
 FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
 LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
 # MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
-EYELID_PAIRS = ((159, 145), (158, 153), (160, 144), (386, 374), (385, 380), (387, 373))
-EYELID_UPPER, EYELID_LOWER = (list(ids) for ids in zip(*EYELID_PAIRS))
+EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tolist()
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
 LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}
@@ -39,10 +39,26 @@ def build_template(data: HeadModelData, subdivide: bool = True) -> HeadModelData
     return data
 
 
+def face_oval_vertices(data: HeadModelData) -> np.ndarray:
+    """(V,) bool: the template vertices inside MediaPipe's face-oval loop (FACE_OVAL_LOOP) --
+    the face region that the detected oval outlines in an image. Inside = within the loop's
+    frontal (x, y) polygon and in front of its rearmost point (which leaves the back of the
+    head out). Needs the 478-point MediaPipe landmark embedding."""
+    from matplotlib.path import Path as Polygon
+
+    v = np.asarray(data.v_template, np.float64)
+    corners = v[np.asarray(data.faces)[data.landmark_faces]]  # (L, 3, 3)
+    landmarks = (corners * np.asarray(data.landmark_bary)[..., None]).sum(1)
+    loop = landmarks[list(FACE_OVAL_LOOP)]
+    inside = Polygon(loop[:, :2]).contains_points(v[:, :2])
+    return inside & (v[:, 2] > loop[:, 2].min())
+
+
 @dataclass
 class Rendered:
     rgb: torch.Tensor  # (B, H, W, 3) antialiased, composited on ``background``
     coverage: torch.Tensor  # (B, H, W) antialiased silhouette in [0, 1]
+    face_region: torch.Tensor | None  # (B, H, W) antialiased coverage by the face-oval region, or None
     fragments: mesh.Fragments
     vertices: torch.Tensor  # (B, V, 3) camera space
     landmarks: torch.Tensor | None  # (B, L, 3) camera space
@@ -95,6 +111,8 @@ class NeuralHeadAvatar(nn.Module):
         ring = np.intersect1d(boundary, region("neck").numpy())
         self.register_buffer("neck_ring", torch.as_tensor(ring if len(ring) else boundary, dtype=torch.long))
         self.has_lips = self.head.num_landmarks == 478
+        oval = face_oval_vertices(template) if self.has_lips else np.zeros(V, bool)
+        self.register_buffer("face_oval", torch.as_tensor(oval, dtype=torch.float32)[:, None], persistent=False)  # derived
         outline = torch.ones(V, dtype=torch.bool)  # vertices that can form the outer silhouette
         for name in ("eyeballs", "mouth_interior", "eye_cavities"):
             outline[region(name)] = False
@@ -148,7 +166,9 @@ class NeuralHeadAvatar(nn.Module):
 
     # ---- rendering -----------------------------------------------------------------------
     def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,
-               texture: bool = True) -> Rendered:
+               texture: bool = True, face_region: bool = False) -> Rendered:
+        """``face_region``: also render the face-oval region's coverage (models with MediaPipe
+        landmarks; None otherwise)."""
         verts, lmk, offsets = self.pose(params)
         faces = self.head.faces
         frags = mesh.rasterize(cameras, verts.detach(), faces)
@@ -167,9 +187,13 @@ class NeuralHeadAvatar(nn.Module):
             colour = self.texture_net(canon, uv, cond[batch], self.mouth_faces[fid], patches,
                                       self.inner_mouth_faces[fid])
             rgb = rgb.index_put(tuple(torch.nonzero(hit).T), colour)
-        ones = hit[..., None].to(verts.dtype)
-        out = mesh.antialias(torch.cat([rgb, ones], -1), frags, cameras, verts, faces)
-        return Rendered(out[..., :3], out[..., 3].clamp(0, 1), frags, verts, lmk, offsets)
+        channels = [rgb, hit[..., None].to(verts.dtype)]
+        face_region = face_region and self.has_lips
+        if face_region:  # interpolated with gradients to the vertices: the region's inner border moves too
+            channels.append(mesh.interpolate(self.face_oval, frags, faces, bary))
+        out = mesh.antialias(torch.cat(channels, -1), frags, cameras, verts, faces)
+        return Rendered(out[..., :3], out[..., 3].clamp(0, 1), out[..., 4].clamp(0, 1) if face_region else None,
+                        frags, verts, lmk, offsets)
 
     def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
         """(N, C) normal-encoder features of the covered pixels, from the rendered camera-space

@@ -13,8 +13,11 @@ per-frame fitting as test-time optimisation.
 
 Terms we can and cannot have here (no pretrained weights): NHA's normal term needs a normal
 predictor and its perceptual term VGG -- both absent, so the normal term is off and a weight-free
-SSIM term stands in for the perceptual one. The semantic term becomes silhouette agreement with
-the foreground mask above the neck cut (we have no face parser).
+SSIM term stands in for the perceptual one. NHA's semantic term (per-region agreement with a face
+parser's segmentation) becomes, without a parser, two regions: the whole head against the
+foreground mask above the neck cut (silhouette, plus the outline chamfer of
+:func:`contour_term`), and the face against the face oval of the detected landmarks
+(:func:`face_oval_masks`; the avatar's region is the template inside the same landmark loop).
 
 RUN/ holds config.json, checkpoint.safetensors + state.json (every ``checkpoint_every``
 iterations; a killed run resumes from it), losses.csv, val.csv, progress.png, val/*.png,
@@ -65,6 +68,7 @@ class NHAConfig:
     w_eyelids: float = 1.0  # eye opening: upper-to-lower lid landmark offsets against the detections
     w_silhouette: float = 10.0
     w_contour: float = 1.0
+    w_semantic: float = 5.0  # face-oval region of the avatar vs the detected landmarks' face oval
     w_rgb: float = 1.0
     w_ssim: float = 0.2
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
@@ -129,6 +133,7 @@ class FrameData:
             idx.append(item["index"])
         self.images, self.masks = torch.stack(imgs), torch.stack(masks)
         self.landmarks = torch.stack(lmks).float()
+        self.face_regions, self.face_known = face_oval_masks(self.landmarks, resolution)
         self.index = torch.tensor(idx)
         from headforge.render.camera import scale_intrinsics
 
@@ -140,13 +145,41 @@ class FrameData:
 
     def to(self, device: torch.device | str) -> "FrameData":
         """Move images, masks, landmarks, indices and intrinsics to ``device`` (in place)."""
-        for key in ("images", "masks", "landmarks", "index", "K"):
+        for key in ("images", "masks", "landmarks", "face_regions", "face_known", "index", "K"):
             setattr(self, key, getattr(self, key).to(device))
         return self
 
     def batch(self, rows: torch.Tensor) -> dict:
+        """image (B, H, W, 3), mask and face_region (B, H, W) in [0, 1], face_known (B,) bool
+        (a face oval was detected), landmarks (B, L, 2) pixels, index (B,) dataset frames."""
         return {"image": self.images[rows].float() / 255, "mask": self.masks[rows].float() / 255,
+                "face_region": self.face_regions[rows].float() / 255, "face_known": self.face_known[rows],
                 "landmarks": self.landmarks[rows], "index": self.index[rows]}
+
+
+def face_oval_masks(landmarks: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The landmark-derived face region of the semantic term: (N, H, W) uint8 coverage of each
+    frame's detected face-oval loop (MediaPipe's FACE_OVAL_LOOP; ``landmarks`` (N, L, 2) pixels,
+    centres at integers) and (N,) bool, whether the frame has one (all loop points detected,
+    MediaPipe's 478 landmarks). Coverage = a 4x4 supersampled fill averaged down (cv2's own
+    antialiased fill grows polygons by about half a pixel)."""
+    import cv2
+
+    from headforge.head.landmarks import FACE_OVAL_LOOP
+
+    ss, shift = 4, 4  # supersampling; cv2 fixed-point bits for sub-pixel corners
+    out = np.zeros((len(landmarks), resolution, resolution), np.uint8)
+    known = np.zeros(len(landmarks), bool)
+    if landmarks.shape[1] == 478:
+        canvas = np.zeros((resolution * ss, resolution * ss), np.uint8)
+        for i, lmk in enumerate(landmarks.numpy()):
+            loop = (lmk[list(FACE_OVAL_LOOP)] + 0.5) * ss - 0.5
+            if np.isfinite(loop).all():
+                canvas[:] = 0
+                cv2.fillPoly(canvas, [np.round(loop * (1 << shift)).astype(np.int32)], 255, cv2.LINE_8, shift)
+                out[i] = cv2.resize(canvas, (resolution, resolution), interpolation=cv2.INTER_AREA)
+                known[i] = True
+    return torch.from_numpy(out), torch.from_numpy(known)
 
 
 def _cameras(K: torch.Tensor, B: int, res: int):
@@ -180,20 +213,35 @@ def mask_outline(mask: torch.Tensor, area: torch.Tensor, max_points: int = 3000)
     return out
 
 
+def outer_band(covered: torch.Tensor, width: int = 2) -> torch.Tensor:
+    """(B, H, W) bool: pixels within ``width`` pixels of an uncovered one (``covered`` (B, H, W)
+    bool, the rendered coverage) -- where the rendered outer silhouette can lie."""
+    uncovered = (~covered).float()[:, None]
+    return torch.nn.functional.max_pool2d(uncovered, 2 * width + 1, stride=1, padding=width)[:, 0] > 0
+
+
 def contour_term(avatar, vertices: torch.Tensor, gt_mask: torch.Tensor, area: torch.Tensor, K: torch.Tensor,
-                 res: int) -> torch.Tensor:
+                 res: int, covered: torch.Tensor | None = None) -> torch.Tensor:
     """Symmetric 2D chamfer (L1-like, in units of the image size) between the GT mask outline and
     the projected silhouette-rim vertices of the avatar. Unlike the antialiased silhouette, whose
     gradient lives in the one-pixel band at the rendered edge, it pulls the surface toward mask
-    parts far away (hair, a bun) -- the role of NHA's soft-rasterised semantic term."""
+    parts far away (hair, a bun) -- the role of NHA's soft-rasterised semantic term.
+
+    ``covered`` (B, H, W) bool, the rendered coverage: rim vertices that project inside it (the
+    flanks of the nose, a cheek in front of the hair, the far side of the head) are occluding
+    contours within the silhouette or hidden, not part of its outline, and are left out --
+    pulled to the mask outline they would bulge the face toward the hair."""
     rims = avatar.contour_points(vertices, K)
     outlines = mask_outline(gt_mask, area)
+    band = outer_band(covered) if covered is not None else None
     terms = []
     for b, (rim, outline) in enumerate(zip(rims, outlines)):
         inside = (rim >= 0).all(1) & (rim < res).all(1)
         rim = rim[inside]
         if len(rim):  # rim points below the neck cut have no outline to match
-            rim = rim[area[b, rim[:, 1].long(), rim[:, 0].long()]]
+            y, x = rim[:, 1].long(), rim[:, 0].long()
+            keep = area[b, y, x] if band is None else area[b, y, x] & band[b, y, x]
+            rim = rim[keep]
         if len(rim) == 0 or len(outline) == 0:
             continue
         d = torch.cdist(outline, rim)
@@ -229,7 +277,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     B = len(batch["index"])
     params = avatar.frame_params(batch["index"]) if params is None else params
     photometric = stage in ("texture", "joint", "align_rgb")
-    r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric)
+    semantic = config.w_semantic > 0 and stage != "texture"
+    r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric, face_region=semantic)
     area = _above_neck(avatar, r.vertices, K, res)
     gt_mask = batch["mask"] * area
     out = {}
@@ -244,8 +293,12 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         if config.w_eyelids > 0 and n == 478:
             out["eyelids"] = config.w_eyelids * eyelid_term(proj, lmk) / res * 10
     out["silhouette"] = config.w_silhouette * ((r.coverage - gt_mask).abs() * area).mean()
+    if semantic and r.face_region is not None:
+        # NHA's semantic term for the one region we can segment without a face parser: the face oval
+        known = batch["face_known"][:, None, None]
+        out["semantic"] = config.w_semantic * ((r.face_region - batch["face_region"]).abs() * area * known).mean()
     if config.w_contour > 0:
-        out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res)
+        out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res, r.fragments.face_id >= 0)
     if photometric:
         inter = (r.coverage.detach() > 0.5) & (batch["mask"] > 0.5) & area
         w = inter[..., None].float()
@@ -546,7 +599,8 @@ def export_geometry(avatar, dataset: Path, path: Path) -> None:
 def _subset(data: FrameData, rows: torch.Tensor) -> FrameData:
     sub = object.__new__(FrameData)
     sub.__dict__.update(data.__dict__)
-    sub.images, sub.masks, sub.landmarks, sub.index = data.images[rows], data.masks[rows], data.landmarks[rows], data.index[rows]
+    for key in ("images", "masks", "landmarks", "face_regions", "face_known", "index"):
+        setattr(sub, key, getattr(data, key)[rows])
     return sub
 
 
