@@ -232,6 +232,36 @@ def test_semantic_term_compares_the_rendered_face_oval_with_the_detected_one(syn
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.geometry_net.parameters())
 
 
+def test_face_region_matches_full_image_barycentric_interpolation(synth_bench, tiny_config):
+    """The face region differentiates only the triangles straddling the oval's border; values
+    and vertex gradients equal interpolating with differentiable barycentrics everywhere."""
+    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar
+    from headforge.render import mesh
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    data = FrameData(dataset, "val", tiny_config.resolution)
+    cams = _cameras(data.K, 2, tiny_config.resolution)
+    with torch.no_grad():
+        verts = avatar.pose(avatar.frame_params(data.index[:2]))[0].double()
+    faces = avatar.head.faces
+    frags = mesh.rasterize(cams, verts, faces)
+    weight = torch.rand(frags.face_id.shape, dtype=torch.float64)
+    grads = []
+    for fast in (True, False):
+        v = verts.clone().requires_grad_(True)
+        if fast:
+            region = avatar._face_region(frags, cams, v)
+        else:
+            region = mesh.interpolate(avatar.face_oval.double(), frags, faces, mesh.barycentrics(frags, cams, v, faces))
+        (region[..., 0] * weight).sum().backward()
+        grads.append((region.detach(), v.grad))
+    assert ((grads[0][0] > 0) & (grads[0][0] < 1)).any()  # there is a border with fractional values
+    torch.testing.assert_close(grads[0][0], grads[1][0], atol=1e-9, rtol=0)
+    assert grads[0][1].abs().sum() > 0
+    torch.testing.assert_close(grads[0][1], grads[1][1], atol=1e-7, rtol=1e-6)
+
+
 def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench, tiny_config):
     """Per-frame fitting with frozen networks pulls a frame moved 15 mm sideways back toward its
     tracked pose (which fits the GT mask and landmarks of the synthetic render) and leaves the

@@ -107,6 +107,8 @@ def test_differentiable_barycentrics_equal_the_rasterizer():
     cams = _cams(64)
     frags = mesh.rasterize(cams, v, f)
     torch.testing.assert_close(mesh.barycentrics(frags, cams, v, f), frags.bary, atol=1e-9, rtol=0)
+    some = frags.mask & (torch.rand(frags.mask.shape) < 0.3)  # a subset of the covered pixels
+    torch.testing.assert_close(mesh.barycentrics(frags, cams, v, f, pixels=some), frags.bary[some], atol=1e-9, rtol=0)
 
 
 def test_interpolation_gradcheck():

@@ -87,17 +87,30 @@ def _pixel_grid(fragments: Fragments) -> torch.Tensor:
     return torch.stack([xs, ys], -1).to(fragments.depth.dtype)  # (H, W, 2)
 
 
-def barycentrics(fragments: Fragments, cameras: Cameras, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+def barycentrics(fragments: Fragments, cameras: Cameras, vertices: torch.Tensor, faces: torch.Tensor,
+                 pixels: torch.Tensor | None = None) -> torch.Tensor:
     """Perspective-correct barycentrics (B, H, W, 3), differentiable w.r.t. ``vertices``.
 
-    Equal to ``fragments.bary`` in value; zero on the background.
+    Equal to ``fragments.bary`` in value; zero on the background. With ``pixels`` (B, H, W) bool
+    (covered pixels only), just those pixels' barycentrics, (N, 3) in ``pixels.nonzero()`` order:
+    the backward pass then costs N pixels instead of the whole image.
     """
-    B, H, W = fragments.face_id.shape
     xyz = cameras.project_finite(vertices)  # (B, V, 3)
+    if pixels is not None:
+        b, y, x = pixels.nonzero(as_tuple=True)
+        corner = faces[fragments.face_id[b, y, x]]  # (N, 3)
+        return _perspective_barycentrics(xyz[b[:, None], corner], torch.stack([x, y], -1).to(xyz.dtype))
+    B, H, W = fragments.face_id.shape
     fid = fragments.face_id.clamp(min=0)
     corner = faces[fid]  # (B, H, W, 3)
     pts = torch.gather(xyz, 1, corner.reshape(B, -1, 1).expand(-1, -1, 3).reshape(B, -1, 3)).reshape(B, H, W, 3, 3)
-    p = _pixel_grid(fragments).to(xyz.dtype).expand(B, H, W, 2)
+    bary = _perspective_barycentrics(pts, _pixel_grid(fragments).to(xyz.dtype).expand(B, H, W, 2))
+    return torch.where(fragments.mask[..., None], bary, torch.zeros_like(bary))
+
+
+def _perspective_barycentrics(pts: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """(..., 3) perspective-correct barycentrics of pixel positions ``p`` (..., 2) in the
+    triangles ``pts`` (..., 3 corners, 3) of projected (x, y pixels, z depth) corners."""
     v0, v1, v2 = pts[..., 0, :2], pts[..., 1, :2], pts[..., 2, :2]
     area = _edge(v0, v1, v2)
     safe_area = torch.where(area.abs() > 1e-12, area, torch.ones_like(area))
@@ -106,8 +119,7 @@ def barycentrics(fragments: Fragments, cameras: Cameras, vertices: torch.Tensor,
     l2 = 1 - l0 - l1
     z = pts[..., 2].clamp(min=1e-9)
     q = torch.stack([l0, l1, l2], -1) / z
-    bary = q / q.sum(-1, keepdim=True).where(q.sum(-1, keepdim=True).abs() > 1e-12, torch.ones_like(q[..., :1]))
-    return torch.where(fragments.mask[..., None], bary, torch.zeros_like(bary))
+    return q / q.sum(-1, keepdim=True).where(q.sum(-1, keepdim=True).abs() > 1e-12, torch.ones_like(q[..., :1]))
 
 
 def interpolate(attributes: torch.Tensor, fragments: Fragments, faces: torch.Tensor,

@@ -172,11 +172,11 @@ class NeuralHeadAvatar(nn.Module):
         verts, lmk, offsets = self.pose(params)
         faces = self.head.faces
         frags = mesh.rasterize(cameras, verts.detach(), faces)
-        bary = mesh.barycentrics(frags, cameras, verts, faces)
         B, H, W = frags.face_id.shape
         hit = frags.face_id >= 0
         rgb = verts.new_full((B, H, W, 3), background)
         if texture and hit.any():
+            bary = mesh.barycentrics(frags, cameras, verts, faces)
             fid = frags.face_id[hit]
             b = bary[hit]  # (N, 3)
             canon = (self.positions[faces[fid]] * b[..., None]).sum(1)
@@ -189,11 +189,29 @@ class NeuralHeadAvatar(nn.Module):
             rgb = rgb.index_put(tuple(torch.nonzero(hit).T), colour)
         channels = [rgb, hit[..., None].to(verts.dtype)]
         face_region = face_region and self.has_lips
-        if face_region:  # interpolated with gradients to the vertices: the region's inner border moves too
-            channels.append(mesh.interpolate(self.face_oval, frags, faces, bary))
+        if face_region:
+            channels.append(self._face_region(frags, cameras, verts))
         out = mesh.antialias(torch.cat(channels, -1), frags, cameras, verts, faces)
         return Rendered(out[..., :3], out[..., 3].clamp(0, 1), out[..., 4].clamp(0, 1) if face_region else None,
                         frags, verts, lmk, offsets)
+
+    def _face_region(self, frags: mesh.Fragments, cameras: Cameras, verts: torch.Tensor) -> torch.Tensor:
+        """(B, H, W, 1) interpolated face-oval indicator, with gradients to the vertices so the
+        region's inner border moves too. Only triangles straddling that border get
+        differentiable barycentrics: inside the others the value is constant, whatever the
+        barycentrics, so its gradient is exactly zero (the same result as interpolating with
+        :func:`mesh.barycentrics` everywhere, at a fraction of the backward cost)."""
+        faces = self.head.faces
+        oval = self.face_oval.to(verts.dtype)
+        region = mesh.interpolate(oval, frags, faces)  # values; no vertex gradients
+        corners = oval[faces, 0]  # (F, 3)
+        straddles = corners.amax(1) != corners.amin(1)
+        border = frags.mask & straddles[frags.face_id.clamp(min=0)]
+        if border.any():
+            bary = mesh.barycentrics(frags, cameras, verts, faces, pixels=border)  # (N, 3)
+            value = (bary * corners[frags.face_id[border]]).sum(-1, keepdim=True)
+            region = region.index_put(tuple(border.nonzero().T), value)
+        return region
 
     def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
         """(N, C) normal-encoder features of the covered pixels, from the rendered camera-space
