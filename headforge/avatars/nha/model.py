@@ -15,6 +15,7 @@ from torch import nn
 
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
+from headforge.head.lbs import surface_points
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
@@ -46,10 +47,10 @@ def face_oval_vertices(data: HeadModelData) -> np.ndarray:
     head out). Needs the 478-point MediaPipe landmark embedding."""
     from matplotlib.path import Path as Polygon
 
-    v = np.asarray(data.v_template, np.float64)
-    corners = v[np.asarray(data.faces)[data.landmark_faces]]  # (L, 3, 3)
-    landmarks = (corners * np.asarray(data.landmark_bary)[..., None]).sum(1)
-    loop = landmarks[list(FACE_OVAL_LOOP)]
+    v = torch.as_tensor(np.asarray(data.v_template), dtype=torch.float64)
+    landmarks = surface_points(v[None], torch.as_tensor(np.asarray(data.faces)), torch.as_tensor(data.landmark_faces),
+                               torch.as_tensor(data.landmark_bary))[0].numpy()
+    loop, v = landmarks[list(FACE_OVAL_LOOP)], v.numpy()
     inside = Polygon(loop[:, :2]).contains_points(v[:, :2])
     return inside & (v[:, 2] > loop[:, 2].min())
 

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
+from headforge.head.landmarks import FACE_OVAL_LOOP
 
 RUN_FORMAT = "headforge-run"
 ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
@@ -114,6 +115,8 @@ class NHAConfig:
 class FrameData:
     """A dataset split held in memory at the training resolution (uint8 images/masks)."""
 
+    PER_FRAME = ("images", "masks", "landmarks", "face_regions", "face_known", "index")  # (N, ...) tensors
+
     def __init__(self, root: Path, split: str, resolution: int):
         from headforge.data.dataset import HeadDataset
 
@@ -145,7 +148,7 @@ class FrameData:
 
     def to(self, device: torch.device | str) -> "FrameData":
         """Move images, masks, landmarks, indices and intrinsics to ``device`` (in place)."""
-        for key in ("images", "masks", "landmarks", "face_regions", "face_known", "index", "K"):
+        for key in (*self.PER_FRAME, "K"):
             setattr(self, key, getattr(self, key).to(device))
         return self
 
@@ -164,8 +167,6 @@ def face_oval_masks(landmarks: torch.Tensor, resolution: int) -> tuple[torch.Ten
     MediaPipe's 478 landmarks). Coverage = a 4x4 supersampled fill averaged down (cv2's own
     antialiased fill grows polygons by about half a pixel)."""
     import cv2
-
-    from headforge.head.landmarks import FACE_OVAL_LOOP
 
     ss, shift = 4, 4  # supersampling; cv2 fixed-point bits for sub-pixel corners
     out = np.zeros((len(landmarks), resolution, resolution), np.uint8)
@@ -599,7 +600,7 @@ def export_geometry(avatar, dataset: Path, path: Path) -> None:
 def _subset(data: FrameData, rows: torch.Tensor) -> FrameData:
     sub = object.__new__(FrameData)
     sub.__dict__.update(data.__dict__)
-    for key in ("images", "masks", "landmarks", "face_regions", "face_known", "index"):
+    for key in FrameData.PER_FRAME:
         setattr(sub, key, getattr(data, key)[rows])
     return sub
 
