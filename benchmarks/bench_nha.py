@@ -5,7 +5,8 @@ rendering.
     python benchmarks/bench_nha.py [--dataset DS] [--run RUN] [--iterations N] [--preset quick|paper]
                                    [--resolution R] [--device cpu|cuda]
 
-Prints one JSON line: train_minutes, val_psnr, val_ssim, val_l1, render_fps (the trained avatar
+Prints one JSON line: train_minutes, val_psnr, val_ssim, val_l1, val_psnr_hard_edge (without the fitted
+soft matte), matte_sigma_px, render_fps (the trained avatar
 at the training resolution on --device; CPU runs use 2 threads, as on the CI machines).
 """
 
@@ -69,6 +70,7 @@ def main() -> None:
         ms = timed(render, repeats=10)
     print(json.dumps({"train_minutes": metrics["train_minutes"], "val_psnr": metrics["val_psnr"],
                       "val_ssim": metrics["val_ssim"], "val_l1": metrics["val_l1"], "val_frames": metrics["val_frames"],
+                      "val_psnr_hard_edge": metrics["val_psnr_hard_edge"], "matte_sigma_px": metrics["matte_sigma_px"],
                       "iterations": metrics["iterations"], "preset": args.preset, "resolution": config.resolution,
                       "device": str(device), f"render_fps_{config.resolution}": round(1000 / ms, 2),
                       "lpips": "n/a (no pretrained weights)"}))

@@ -337,7 +337,10 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
     other = type(tiny_config)(**{**tiny_config.__dict__, "seed": 1})
     with pytest.raises(HeadforgeError, match="other settings"):
         fit(dataset, run, other, log=lambda m: None)
+    # the soft matte is fitted after training and scored against the hard edge
+    assert 0 <= metrics["matte_sigma_px"] <= 4 and 5 < metrics["val_psnr_hard_edge"] < 60
     avatar, _, _ = load_run(run)
+    assert float(avatar.matte_sigma) == metrics["matte_sigma_px"]
     runner = CliRunner()
     res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / "obj"), "--frames", "0-1", "--texture-size", "64"])
     assert res.exit_code == 0, res.output
@@ -417,3 +420,30 @@ def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_confi
     assert chunks[0] == [4, 5, 6, 7] and chunks[-1][-1] == n_train - 1 and len(chunks) == -(-(n_train - 4) // 4)
     assert any(f"aligning training frames 4..{n_train}" in m for m in logs)
     assert json.loads((run / "state.json").read_text())["aligned"] == n_train
+
+
+def test_soft_matte_changes_only_the_edge_and_old_runs_load_without_it(synth_bench, tiny_config, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from headforge.avatars.nha.trainer import FrameData, _cameras, _load_weights, build_avatar
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    data = FrameData(dataset, "train", tiny_config.resolution)
+    params, cams = avatar.frame_params(data.index[:1]), _cameras(data.K, 1, tiny_config.resolution)
+    with torch.no_grad():
+        hard = avatar.render(params, cams)
+        avatar.matte_sigma.fill_(1.5)
+        soft = avatar.render(params, cams)
+        assert torch.equal(avatar.render(params, cams, matte=False).rgb, hard.rgb)
+    changed = (soft.rgb - hard.rgb).abs().amax(-1) > 1e-4
+    edge = (hard.coverage > 0) & (hard.coverage < 1)
+    near_edge = torch.nn.functional.max_pool2d(edge.float()[:, None], 2 * 5 + 1, 1, 5)[:, 0] > 0  # 3 sigma + 1 px
+    assert changed.any() and not (changed & ~near_edge).any()
+    # a checkpoint written before the matte existed loads with the hard edge
+    path = tmp_path / "old.safetensors"
+    state = {k: v for k, v in avatar.state_dict().items() if not k.startswith("matte_")}
+    save_file({k: v.contiguous() for k, v in state.items()}, str(path))
+    _load_weights(avatar, path)
+    assert float(avatar.matte_sigma) == 0
+    assert set(load_file(str(path))) == set(state)

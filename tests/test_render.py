@@ -288,3 +288,27 @@ def test_scale_intrinsics_keeps_pixel_centres():
     small_px = (small @ point)[:2] / point[2]
     assert torch.allclose(small_px, (big_px + 0.5) * 0.5 - 0.5, atol=1e-4)
     assert K[0, 0] == 900.0  # the input is not modified
+
+
+def test_soft_matte_widens_only_the_edge_and_keeps_the_surface_colour():
+    from headforge.render.matte import fit_sigma, gaussian_blur, soft_matte
+
+    cov = torch.zeros(1, 64, 64)
+    cov[:, 16:48, 20:44] = 1.0
+    colour = torch.tensor([0.2, 0.5, 0.7])
+    rgb = cov[..., None] * colour + (1 - cov[..., None])  # on white
+    same_rgb, same_cov = soft_matte(rgb, cov, 0.0)
+    assert torch.equal(same_rgb, rgb) and torch.equal(same_cov, cov)
+    out, alpha = soft_matte(rgb, cov, 1.5)
+    assert torch.allclose(alpha, gaussian_blur(cov[..., None], 1.5)[..., 0])
+    assert abs(float(alpha.sum() - cov.sum())) < 1e-3 * float(cov.sum())  # the blur keeps the matte's mass
+    deep = torch.zeros_like(cov, dtype=torch.bool)
+    deep[:, 24:40, 28:36] = True
+    assert torch.allclose(out[deep], rgb[deep])  # interior untouched
+    # outside the shape the soft edge fades the surface's colour into the background, nothing else
+    assert torch.allclose(out, alpha[..., None] * colour + (1 - alpha[..., None]), atol=1e-5)
+    assert alpha[0, 32, 18] > 0.05 and alpha[0, 32, 20] < 1  # wider than the hard edge, on both sides
+    # the sigma of a matted target is recovered from the hard render
+    target, _ = soft_matte(rgb, cov, 1.25)
+    sigma, scores = fit_sigma(rgb, cov, target, torch.ones_like(cov))
+    assert sigma == 1.25 and min(s for _, s in scores) < 1e-10

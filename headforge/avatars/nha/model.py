@@ -20,6 +20,7 @@ from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
 from headforge.render.camera import Cameras
+from headforge.render.matte import soft_matte
 
 FLIP = torch.tensor([1.0, -1.0, -1.0])
 FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
@@ -118,6 +119,10 @@ class NeuralHeadAvatar(nn.Module):
         for name in ("eyeballs", "mouth_interior", "eye_cavities"):
             outline[region(name)] = False
         self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0], persistent=False)  # derived
+        # soft edge of the rendered matte (headforge.render.matte): sigma in px at the training
+        # resolution, fitted after training (trainer.fit_matte); 0 = the antialiased edge
+        self.register_buffer("matte_sigma", torch.zeros(()))
+        self.register_buffer("matte_resolution", torch.tensor(float(config.resolution)))
 
     # ---- geometry ------------------------------------------------------------------------
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
@@ -167,9 +172,11 @@ class NeuralHeadAvatar(nn.Module):
 
     # ---- rendering -----------------------------------------------------------------------
     def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,
-               texture: bool = True, face_region: bool = False) -> Rendered:
+               texture: bool = True, face_region: bool = False, matte: bool = True) -> Rendered:
         """``face_region``: also render the face-oval region's coverage (models with MediaPipe
-        landmarks; None otherwise)."""
+        landmarks; None otherwise). ``matte``: soften the edge of ``rgb`` and ``coverage`` by the
+        fitted ``matte_sigma`` (scaled to the camera's height); off, they are the antialiased
+        render (the training losses use that)."""
         verts, lmk, offsets = self.pose(params)
         faces = self.head.faces
         frags = mesh.rasterize(cameras, verts.detach(), faces)
@@ -193,8 +200,10 @@ class NeuralHeadAvatar(nn.Module):
         if face_region:
             channels.append(self._face_region(frags, cameras, verts))
         out = mesh.antialias(torch.cat(channels, -1), frags, cameras, verts, faces)
-        return Rendered(out[..., :3], out[..., 3].clamp(0, 1), out[..., 4].clamp(0, 1) if face_region else None,
-                        frags, verts, lmk, offsets)
+        rgb, coverage = out[..., :3], out[..., 3].clamp(0, 1)
+        if matte and self.matte_sigma > 0:
+            rgb, coverage = soft_matte(rgb, coverage, float(self.matte_sigma * H / self.matte_resolution), background)
+        return Rendered(rgb, coverage, out[..., 4].clamp(0, 1) if face_region else None, frags, verts, lmk, offsets)
 
     def _face_region(self, frags: mesh.Fragments, cameras: Cameras, verts: torch.Tensor) -> torch.Tensor:
         """(B, H, W, 1) interpolated face-oval indicator, with gradients to the vertices so the

@@ -279,7 +279,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     params = avatar.frame_params(batch["index"]) if params is None else params
     photometric = stage in ("texture", "joint", "align_rgb")
     semantic = config.w_semantic > 0 and stage != "texture"
-    r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric, face_region=semantic)
+    r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric, face_region=semantic,
+                      matte=False)
     area = _above_neck(avatar, r.vertices, K, res)
     gt_mask = batch["mask"] * area
     out = {}
@@ -301,10 +302,13 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     if config.w_contour > 0:
         out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res, r.fragments.face_id >= 0)
     if photometric:
+        # The target is the matted frame (on white, as evaluated): where the matte is soft (hair
+        # strands, a segmenter unsure of a bun) the texture learns the colour the frame shows.
         inter = (r.coverage.detach() > 0.5) & (batch["mask"] > 0.5) & area
         w = inter[..., None].float()
-        out["rgb"] = config.w_rgb * ((r.rgb - batch["image"]).abs() * w).sum() / w.sum().clamp(min=1) / 3
-        gt_comp = batch["image"] * w + (1 - w)
+        matted = batch["image"] * batch["mask"][..., None] + (1 - batch["mask"][..., None])
+        out["rgb"] = config.w_rgb * ((r.rgb - matted).abs() * w).sum() / w.sum().clamp(min=1) / 3
+        gt_comp = matted * w + (1 - w)
         pred_comp = r.rgb * w + (1 - w)
         out["ssim"] = config.w_ssim * (1 - ssim(pred_comp, gt_comp).mean())
     if stage != "texture":
@@ -392,8 +396,11 @@ def load_run(run: Path, device: torch.device | str = "cpu"):
 def _load_weights(avatar, path: Path) -> None:
     from safetensors.torch import load_file
 
+    state = load_file(str(path))
+    state.setdefault("matte_sigma", torch.zeros(()))  # runs from before the soft matte: the hard edge
+    state.setdefault("matte_resolution", avatar.matte_resolution.cpu())
     try:
-        avatar.load_state_dict(load_file(str(path)))
+        avatar.load_state_dict(state)
     except RuntimeError as err:
         first = str(err).splitlines()[1].strip() if len(str(err).splitlines()) > 1 else str(err)
         raise HeadforgeError(f"{path} was written by another headforge version or network layout ({first})") from None
@@ -429,6 +436,29 @@ def align_frames(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, st
     finally:
         for p, flag in zip(avatar.parameters(), was):
             p.requires_grad_(flag)
+
+
+@torch.no_grad()
+def fit_matte(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, frames: int = 32) -> tuple[float, list]:
+    """Fit the avatar's soft-matte sigma (:mod:`headforge.render.matte`) to ``frames`` evenly
+    spaced frames of ``data`` (training frames, with their fitted parameters): the edge width
+    whose matted renders best match the matted frames above the neck cut. Sets
+    ``avatar.matte_sigma``; returns (sigma px, [(sigma, mse), ...])."""
+    from headforge.render.matte import fit_sigma
+
+    rows = torch.linspace(0, len(data) - 1, min(frames, len(data))).long()
+    rgb, cov, target, weight = [], [], [], []
+    for chunk in rows.split(4 * config.batch):
+        batch = data.batch(chunk)
+        r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(chunk), config.resolution),
+                          background=1.0, matte=False)
+        area = _above_neck(avatar, r.vertices, K, config.resolution)
+        m = (batch["mask"] * area)[..., None]
+        rgb.append(r.rgb), cov.append(r.coverage), target.append(batch["image"] * m + (1 - m)), weight.append(area)
+    sigma, scores = fit_sigma(torch.cat(rgb), torch.cat(cov), torch.cat(target), torch.cat(weight))
+    avatar.matte_sigma.fill_(sigma)
+    avatar.matte_resolution.fill_(config.resolution)
+    return sigma, scores
 
 
 def test_time_optimise(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig) -> None:
@@ -561,14 +591,21 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     loss_file.close()
     train_seconds = time.perf_counter() - start
     _plot(run)
+    sigma, _ = fit_matte(avatar, train, K, config)
+    save_checkpoint(run, avatar, optimisers, {"iteration": it, "seconds": train_seconds, "aligned": aligned})
+    log(f"soft matte: edge sigma {sigma:.2f} px fitted to the training frames")
     log(f"test-time optimisation of the {len(val_all)} validation frames "
         f"({config.tto_steps} + {config.tto_photometric_steps} photometric steps each)")
     test_time_optimise(avatar, val_all, K, config)
     scores = evaluate(avatar, val_all, K, config, run / "val", max_images=8)
+    avatar.matte_sigma.zero_()  # the same frames with the antialiased edge, for comparison
+    hard = evaluate(avatar, val_all, K, config)
+    avatar.matte_sigma.fill_(sigma)
     if (dataset / "gt" / "geometry.safetensors").is_file():
         export_geometry(avatar, dataset, run / "geometry.safetensors")
     metrics = {"train_minutes": round(train_seconds / 60, 2), "device": str(torch.device(device)), "val_psnr": round(scores["psnr"], 3),
                "val_ssim": round(scores["ssim"], 4), "val_l1": round(scores["l1"], 4), "val_frames": scores["frames"],
+               "matte_sigma_px": sigma, "val_psnr_hard_edge": round(hard["psnr"], 3),
                "iterations": config.total_iters, "resolution": config.resolution,
                "lpips": "n/a (no pretrained weights)", "dataset": str(dataset)}
     (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
