@@ -19,6 +19,11 @@ foreground mask above the neck cut (silhouette, plus the outline chamfer of
 :func:`contour_term`), and the face against the face oval of the detected landmarks
 (:func:`face_oval_masks`; the avatar's region is the template inside the same landmark loop).
 
+The photometric target is the matted frame (on white by its soft matte, as evaluated), and after
+training the avatar's edge softness is fitted to the training frames (:func:`fit_matte`,
+:mod:`headforge.render.matte`): a segmenter's matte is soft over a few pixels where a mesh edge is
+one. metrics.json gives the held-out PSNR with and without that soft edge.
+
 RUN/ holds config.json, checkpoint.safetensors + state.json (every ``checkpoint_every``
 iterations; a killed run resumes from it), losses.csv, val.csv, progress.png, val/*.png,
 metrics.json.
