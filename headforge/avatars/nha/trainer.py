@@ -454,12 +454,8 @@ def fit_matte(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, frame
     rows = torch.linspace(0, len(data) - 1, min(frames, len(data))).long()
     rgb, cov, target, weight = [], [], [], []
     for chunk in rows.split(4 * config.batch):
-        batch = data.batch(chunk)
-        r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(chunk), config.resolution),
-                          background=1.0, matte=False)
-        area = _above_neck(avatar, r.vertices, K, config.resolution)
-        m = (batch["mask"] * area)[..., None]
-        rgb.append(r.rgb), cov.append(r.coverage), target.append(batch["image"] * m + (1 - m)), weight.append(area)
+        r, _, gt, area = composites(avatar, data.batch(chunk), K, config, matte=False)
+        rgb.append(r.rgb), cov.append(r.coverage), target.append(gt), weight.append(area)
     sigma, scores = fit_sigma(torch.cat(rgb), torch.cat(cov), torch.cat(target), torch.cat(weight))
     avatar.matte_sigma.fill_(sigma)
     avatar.matte_resolution.fill_(config.resolution)
@@ -487,12 +483,13 @@ def validate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_di
 
 
 @torch.no_grad()
-def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig):
+def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, matte: bool = True):
     """(render, avatar image, GT image, area) of a batch as :func:`evaluate` scores it: images
     (B, H, W, 3) on white, the GT cut by its mask, both by ``area`` (B, H, W), the rows above the
-    neck cut; ``render`` holds the avatar's coverage and vertices."""
+    neck cut; ``render`` holds the avatar's coverage and vertices. ``matte``: the avatar with its
+    fitted soft edge (else the antialiased one)."""
     r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(batch["index"]), config.resolution),
-                      background=1.0)
+                      background=1.0, matte=matte)
     area = _above_neck(avatar, r.vertices, K, config.resolution)
     m = (batch["mask"] * area)[..., None]
     gt = batch["image"] * m + (1 - m)
@@ -502,7 +499,7 @@ def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig):
 
 @torch.no_grad()
 def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_dir: Path | None = None,
-             max_images: int = 6) -> dict:
+             max_images: int = 6, matte: bool = True) -> dict:
     """PSNR / SSIM / L1 on the frames, both images composited on white with the GT mask above
     the neck cut (the avatar has no shoulders) -- full-image metrics as PointAvatar reports."""
     from headforge.metrics.image import l1, psnr, ssim
@@ -512,7 +509,7 @@ def evaluate(avatar, data: FrameData, K: torch.Tensor, config: NHAConfig, out_di
     saved = 0
     for rows in torch.arange(len(data)).split(config.batch):
         batch = data.batch(rows)
-        _, pred, gt, _ = composites(avatar, batch, K, config)
+        _, pred, gt, _ = composites(avatar, batch, K, config, matte)
         for b in range(len(rows)):
             vals["psnr"].append(psnr(pred[b:b + 1], gt[b:b + 1]).item())
             vals["ssim"].append(ssim(pred[b:b + 1], gt[b:b + 1]).item())
@@ -603,9 +600,7 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
         f"({config.tto_steps} + {config.tto_photometric_steps} photometric steps each)")
     test_time_optimise(avatar, val_all, K, config)
     scores = evaluate(avatar, val_all, K, config, run / "val", max_images=8)
-    avatar.matte_sigma.zero_()  # the same frames with the antialiased edge, for comparison
-    hard = evaluate(avatar, val_all, K, config)
-    avatar.matte_sigma.fill_(sigma)
+    hard = evaluate(avatar, val_all, K, config, matte=False)  # the same frames with the antialiased edge
     if (dataset / "gt" / "geometry.safetensors").is_file():
         export_geometry(avatar, dataset, run / "geometry.safetensors")
     metrics = {"train_minutes": round(train_seconds / 60, 2), "device": str(torch.device(device)), "val_psnr": round(scores["psnr"], 3),
