@@ -188,6 +188,12 @@ def face_oval_masks(landmarks: torch.Tensor, resolution: int) -> tuple[torch.Ten
     return torch.from_numpy(out), torch.from_numpy(known)
 
 
+def matte_on_white(image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, H, W, 3) frames composited on white by their soft ``mask`` (B, H, W): the images the
+    avatar is trained on (photometric terms) and scored against."""
+    return image * mask[..., None] + (1 - mask[..., None])
+
+
 def _cameras(K: torch.Tensor, B: int, res: int):
     from headforge.render.camera import Cameras
 
@@ -311,7 +317,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         # strands, a segmenter unsure of a bun) the texture learns the colour the frame shows.
         inter = (r.coverage.detach() > 0.5) & (batch["mask"] > 0.5) & area
         w = inter[..., None].float()
-        matted = batch["image"] * batch["mask"][..., None] + (1 - batch["mask"][..., None])
+        matted = matte_on_white(batch["image"], batch["mask"])
         out["rgb"] = config.w_rgb * ((r.rgb - matted).abs() * w).sum() / w.sum().clamp(min=1) / 3
         gt_comp = matted * w + (1 - w)
         pred_comp = r.rgb * w + (1 - w)
@@ -491,8 +497,7 @@ def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, matte: b
     r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(batch["index"]), config.resolution),
                       background=1.0, matte=matte)
     area = _above_neck(avatar, r.vertices, K, config.resolution)
-    m = (batch["mask"] * area)[..., None]
-    gt = batch["image"] * m + (1 - m)
+    gt = matte_on_white(batch["image"], batch["mask"] * area)
     pred = r.rgb * area[..., None] + (1 - area[..., None].float())
     return r, pred, gt, area
 
