@@ -3,7 +3,7 @@
 rendering.
 
     python benchmarks/bench_nha.py [--dataset DS] [--run RUN] [--iterations N] [--preset quick|paper]
-                                   [--resolution R] [--device cpu|cuda]
+                                   [--resolution R] [--device cpu|cuda] [--set FIELD=VALUE ...]
 
 Prints one JSON line: train_minutes, val_psnr, val_ssim, val_l1, val_psnr_hard_edge (without the fitted
 soft matte), matte_sigma_px, render_fps (the trained avatar
@@ -33,6 +33,8 @@ def main() -> None:
     parser.add_argument("--preset", choices=("quick", "paper"), default="quick")
     parser.add_argument("--resolution", type=int, default=None, help="training resolution (default: the preset's)")
     parser.add_argument("--device", default="cpu", help="cpu (the CI machines' figure), cuda or auto")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="override an NHAConfig field for an A/B run (repeatable), e.g. --set tex_grid=256")
     args = parser.parse_args()
     from headforge.avatars.nha.trainer import FrameData, NHAConfig, _cameras, fit, load_run
     from headforge.devices import resolve_device
@@ -55,6 +57,8 @@ def main() -> None:
         config.resolution = args.resolution
     if args.iterations:
         config.scale_schedule(args.iterations)
+    for assignment in args.set:
+        config.override(assignment)
     metrics = fit(dataset, args.run, config, log=lambda m: print(m, file=sys.stderr), device=device)
     avatar, config, _ = load_run(args.run, device)
     data = FrameData(dataset, "val", config.resolution).to(device)
@@ -72,7 +76,7 @@ def main() -> None:
                       "val_ssim": metrics["val_ssim"], "val_l1": metrics["val_l1"], "val_frames": metrics["val_frames"],
                       "val_psnr_hard_edge": metrics["val_psnr_hard_edge"], "matte_sigma_px": metrics["matte_sigma_px"],
                       "iterations": metrics["iterations"], "preset": args.preset, "resolution": config.resolution,
-                      "device": str(device), f"render_fps_{config.resolution}": round(1000 / ms, 2),
+                      "device": str(device), "overrides": args.set, f"render_fps_{config.resolution}": round(1000 / ms, 2),
                       "lpips": "n/a (no pretrained weights)"}))
 
 

@@ -192,7 +192,9 @@ def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headf
             preset: str = typer.Option("quick", help="quick (CPU) or paper (GPU-sized)"),
             iterations: Optional[int] = typer.Option(None, help="scale the 3-stage schedule to this many iterations"),
             resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)"),
-            device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
+            device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]"),
+            set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE",
+                                                     help="override a preset field, e.g. --set tex_grid=256 (repeatable)")) -> None:
     """Neural Head Avatars: geometry MLP offsets + neural texture on the tracked head model."""
     from headforge.avatars.nha.trainer import NHAConfig, fit
     from headforge.devices import resolve_device
@@ -206,6 +208,8 @@ def fit_nha(dataset: Path = typer.Argument(..., help="a dataset written by headf
         config.resolution = resolution
     if iterations is not None:
         config.scale_schedule(iterations)
+    for assignment in set_ or []:
+        config.override(assignment)
     target = resolve_device(device)
     with _Bars() as bars:
         metrics = fit(dataset, output, config, log=_progress, progress=bars.factory("training", config.total_iters),

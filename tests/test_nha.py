@@ -370,6 +370,19 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
         fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])
     assert res.exit_code != 0 and "--preset" in str(res.exception)
+    for bad, message in (("tex_grids=256", "NHAConfig field"), ("tex_grid=big", "not a int"), ("subdivide=maybe", "not a bool")):
+        res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--set", bad])
+        assert res.exit_code != 0 and message in str(res.exception)
+    assert not (tmp_path / "r").exists()
+
+
+def test_config_overrides_parse_as_the_field_types():
+    from headforge.avatars.nha.trainer import NHAConfig
+
+    config = NHAConfig.quick()
+    for assignment in ("tex_grid=256", "lr_grid=0.02", "subdivide=true", "normal_channels=32,32,16"):
+        config.override(assignment)
+    assert (config.tex_grid, config.lr_grid, config.subdivide, config.normal_channels) == (256, 0.02, True, (32, 32, 16))
 
 
 def test_device_choice_is_checked(tmp_path, monkeypatch):

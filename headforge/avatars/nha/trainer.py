@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +111,27 @@ class NHAConfig:
         self.geometry_iters = max(1, round(iterations * self.geometry_iters / total))
         self.texture_iters = max(1, round(iterations * self.texture_iters / total))
         self.joint_iters = max(1, iterations - self.geometry_iters - self.texture_iters)
+
+    def override(self, assignment: str) -> None:
+        """Set one field from ``"name=value"`` (the value parsed as the field's current type;
+        tuples as comma-separated ints), e.g. ``"tex_grid=256"`` or ``"normal_channels=32,32,16"``."""
+        name, sep, text = assignment.partition("=")
+        name = name.strip()
+        if not sep or name not in {f.name for f in fields(self)}:
+            raise HeadforgeError(f"--set expects FIELD=VALUE with an NHAConfig field, got {assignment!r}")
+        current = getattr(self, name)
+        try:
+            if isinstance(current, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                value = text.lower() in ("true", "1")
+            elif isinstance(current, tuple):
+                value = tuple(int(v) for v in text.split(","))
+            else:
+                value = type(current)(text)
+        except ValueError:
+            raise HeadforgeError(f"--set {name}: {text!r} is not a {type(current).__name__}") from None
+        setattr(self, name, value)
 
     @property
     def total_iters(self) -> int:
