@@ -376,6 +376,18 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
     assert not (tmp_path / "r").exists()
 
 
+def test_learning_rates_decay_along_a_half_cosine_at_the_end():
+    from headforge.avatars.nha.trainer import NHAConfig, lr_factor
+
+    config = NHAConfig.quick()  # 2000 iterations, decay from 1400
+    factors = [lr_factor(it, config) for it in range(config.total_iters + 1)]
+    assert factors[:1401] == [1.0] * 1401
+    assert all(a >= b for a, b in zip(factors, factors[1:])) and factors[-1] == pytest.approx(config.lr_final)
+    assert factors[1700] == pytest.approx((1 + config.lr_final) / 2)  # half way down
+    config.override("lr_final=1.0")
+    assert {lr_factor(it, config) for it in range(config.total_iters + 1)} == {1.0}
+
+
 def test_config_overrides_parse_as_the_field_types():
     from headforge.avatars.nha.trainer import NHAConfig
 
