@@ -35,6 +35,7 @@ def tiny_config():
     config.resolution = 128
     config.geometry_iters, config.texture_iters, config.joint_iters = 4, 2, 2
     config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps, config.align_steps = 2, 4, 2, 2, 2
+    config.val_tto_steps = 2
     return config
 
 

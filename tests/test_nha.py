@@ -71,7 +71,7 @@ def tiny_config():
     config = NHAConfig.quick()
     config.resolution = 96
     config.geometry_iters, config.texture_iters, config.joint_iters = 2, 2, 2
-    config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps = 2, 3, 2, 1
+    config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps, config.val_tto_steps = 2, 3, 2, 1, 1
     config.tex_grid, config.geo_width, config.tex_width = 32, 32, 32
     return config
 
