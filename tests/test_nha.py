@@ -472,3 +472,27 @@ def test_soft_matte_changes_only_the_edge_and_old_runs_load_without_it(synth_ben
     _load_weights(avatar, path)
     assert float(avatar.matte_sigma) == 0
     assert set(load_file(str(path))) == set(state)
+
+
+def test_in_training_validation_fits_for_val_tto_steps_and_restores_the_frames(monkeypatch):
+    from types import SimpleNamespace
+
+    from headforge.avatars.nha import trainer
+
+    config = trainer.NHAConfig.quick()
+    assert config.val_tto_steps < config.tto_steps
+    calls = []
+
+    def fake_align(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+        calls.append(steps)
+        avatar.frames["expression"][data.index] += 1.0  # the fitting moves the held-out frames
+
+    monkeypatch.setattr(trainer, "align_frames", fake_align)
+    monkeypatch.setattr(trainer, "evaluate", lambda avatar, data, K, cfg, out_dir=None: {"psnr": 0.0})
+    avatar = SimpleNamespace(frames={"expression": torch.zeros(5, 3)})
+    data = SimpleNamespace(index=torch.tensor([1, 3]))
+    trainer.validate(avatar, data, None, config)
+    trainer.test_time_optimise(avatar, data, None, config)
+    assert calls == [config.val_tto_steps, config.tto_steps]
+    assert avatar.frames["expression"][[0, 2, 4]].abs().sum() == 0
+    assert avatar.frames["expression"][[1, 3]].eq(1.0).all()  # validate restored its fit; the final fit stays
