@@ -73,6 +73,7 @@ def tiny_config():
     config.geometry_iters, config.texture_iters, config.joint_iters = 2, 2, 2
     config.checkpoint_every, config.val_every, config.val_frames, config.tto_steps, config.val_tto_steps = 2, 3, 2, 1, 1
     config.tex_grid, config.geo_width, config.tex_width = 32, 32, 32
+    config.align_steps = 10
     return config
 
 
@@ -90,6 +91,30 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     assert far.sum() > 100 and moved[far].max() < 1e-7
     assert moved[~far].max() > 1e-5
     assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
+
+
+def test_offsets_on_the_neck_rows_equal_the_full_network_evaluation(synth_bench, tiny_config):
+    """The conditioned G runs on the neck-fade vertices only; values and neck-pose gradients are
+    those of NHA's blend over every vertex (the pure-PyTorch reference below)."""
+    from headforge.avatars.nha.trainer import build_avatar
+
+    avatar, _ = build_avatar(synth_bench[0] / "subject_00", tiny_config)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        torch.nn.init.normal_(avatar.geometry_net.head.weight, std=0.1)
+        torch.nn.init.normal_(avatar.geometry_net.mapping.out.weight, std=0.05)
+    assert 0 < len(avatar.neck_rows) < avatar.head.num_vertices
+    pose = torch.tensor([[0.3, 0.2, 0.0], [-0.1, 0.4, 0.1]], requires_grad=True)
+    fast = avatar.offsets(pose)
+    g = avatar.geometry_net
+    static = g(avatar.positions, torch.zeros(1, 3))
+    reference = static + avatar.neck_fade * (g(avatar.positions, pose) - static)
+    assert fast.shape == reference.shape == (2, avatar.head.num_vertices, 3)
+    assert torch.allclose(fast, reference, atol=1e-7)
+    weights = torch.randn_like(fast)
+    grad_fast, = torch.autograd.grad((fast * weights).sum(), pose)
+    grad_ref, = torch.autograd.grad((reference * weights).sum(), pose)
+    assert grad_ref.abs().max() > 1e-4 and torch.allclose(grad_fast, grad_ref, rtol=1e-4, atol=1e-7)
 
 
 def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_config):

@@ -89,6 +89,8 @@ class NeuralHeadAvatar(nn.Module):
         neck = torch.zeros(V, 3)
         neck[region("neck")] = 1.0
         self.register_buffer("neck_fade", laplacian_smooth(neck, faces, 0.5, iterations=10)[:, :1])
+        # the vertices with dynamic offsets: G's conditioned evaluation runs on these only
+        self.register_buffer("neck_rows", torch.nonzero(self.neck_fade[:, 0] > 0)[:, 0], persistent=False)  # derived
         lap = torch.full((V,), 1.0)
         for name, w in LAPLACIAN_WEIGHTS.items():
             lap[region(name)] = w
@@ -126,13 +128,18 @@ class NeuralHeadAvatar(nn.Module):
 
     # ---- geometry ------------------------------------------------------------------------
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3): static offsets everywhere, neck-pose dependent ones on the neck."""
+        """(B, V, 3): static offsets everywhere, neck-pose dependent ones on the neck (blended
+        into the static ones by ``neck_fade``). The conditioned network runs on the vertices the
+        fade reaches (``neck_rows``) only: elsewhere the blend is the static offset exactly, and
+        evaluating G there for every frame made up most of a per-frame alignment step."""
         B = neck_pose.shape[0]
         static = self.geometry_net(self.positions, neck_pose.new_zeros(1, 3))
         if B == 0:
             return static
-        dynamic = self.geometry_net(self.positions, neck_pose)
-        return static + self.neck_fade * (dynamic - static)
+        rows = self.neck_rows
+        dynamic = self.geometry_net(self.positions[rows], neck_pose, rows)  # (B, R, 3)
+        near = static[:, rows]
+        return static.repeat(B, 1, 1).index_copy(1, rows, near + self.neck_fade[rows] * (dynamic - near))
 
     def params_from_tracking(self, tracked: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Frame parameters (FRAME_KEYS, (T, ...) float32) that pose this avatar as ``tracked``
