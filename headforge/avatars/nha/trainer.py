@@ -86,8 +86,8 @@ class NHAConfig:
     checkpoint_every: int = 200
     val_every: int = 500
     val_frames: int = 4
-    align_steps: int = 30  # per training frame, after the geometry stage (0: off; quick: 10 -- 30 gave
-    # talking_bun +0.11 dB but 30.9 min of training, the frozen geometry network dominating each step)
+    align_steps: int = 30  # per training frame, after the geometry stage (0: off; talking_bun, quick:
+    # 10 -> 30 steps +0.11 dB in a paired run; 30 steps cost ~7 min of the 24 min of training)
     lr_align: float = 6e-3  # Adam on rotations (rad) and expression; translation (m) gets a tenth
     tto_steps: int = 100  # per held-out frame: silhouette, outline, landmarks (talking_bun: 30/60/100 -> +0/0.14/0.19 dB)
     tto_photometric_steps: int = 10  # then with the photometric terms added
@@ -101,7 +101,7 @@ class NHAConfig:
     def quick(cls) -> "NHAConfig":
         return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
                    tex_width=96, tex_mouth_grid=32, normal_channels=(16, 16, 16), tex_head_width=48,
-                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, align_steps=10,
+                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, align_steps=30,
                    tto_photometric_steps=0)
 
     @classmethod
