@@ -26,6 +26,8 @@ def test_film_siren_shapes_and_conditioning():
     off = g(torch.rand(50, 3) * 2 - 1, torch.zeros(3, 3))
     assert off.shape == (3, 50, 3) and off.abs().max() <= 0.01
     assert torch.allclose(off[0], off[1])  # same condition, same offsets
+    positions, cond, rows = torch.rand(50, 3) * 2 - 1, torch.randn(2, 3), torch.tensor([3, 17, 42])
+    assert torch.allclose(g(positions, cond, rows), g(positions, cond)[:, rows], atol=1e-7)  # rows only
     tex = TextureNet(grid_size=16, grid_channels=4, layers=3, width=16, cond_dim=6, mouth_grid_size=8,
                      normal_channels=(8, 8, 4), head_width=8)
     mouth = torch.tensor([False, True, False, True])

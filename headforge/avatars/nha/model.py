@@ -137,7 +137,7 @@ class NeuralHeadAvatar(nn.Module):
         if B == 0:
             return static
         rows = self.neck_rows
-        dynamic = self.geometry_net(self.positions[rows], neck_pose, rows)  # (B, R, 3)
+        dynamic = self.geometry_net(self.positions, neck_pose, rows)  # (B, R, 3)
         near = static[:, rows]
         return static.repeat(B, 1, 1).index_copy(1, rows, near + self.neck_fade[rows] * (dynamic - near))
 

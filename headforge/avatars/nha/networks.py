@@ -79,12 +79,12 @@ class GeometryNet(nn.Module):
         self.max_offset = max_offset
 
     def forward(self, positions: torch.Tensor, cond: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """positions (V, 3) normalised template; cond (B, cond_dim) -> offsets (B, V, 3).
-        ``rows`` (R,) vertex indices: ``positions`` are those vertices' (R, 3) and the output is
-        their (B, R, 3) offsets (the same values as the full evaluation's rows)."""
+        """positions (V, 3) normalised template; cond (B, cond_dim) -> offsets (B, V, 3), or with
+        ``rows`` (R,) vertex indices those vertices' offsets (B, R, 3) only (the same values as
+        the full evaluation's rows)."""
         gamma, beta = self.mapping(cond)
-        embedding = self.embedding if rows is None else self.embedding[rows]
-        x = torch.cat([positions, embedding], -1)[None].expand(cond.shape[0], -1, -1)
+        x = torch.cat([positions, self.embedding], -1)
+        x = (x if rows is None else x[rows])[None].expand(cond.shape[0], -1, -1)
         return self.max_offset * torch.tanh(self.head(self.siren(x, gamma, beta)))
 
 

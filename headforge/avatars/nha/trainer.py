@@ -101,7 +101,7 @@ class NHAConfig:
     def quick(cls) -> "NHAConfig":
         return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
                    tex_width=96, tex_mouth_grid=32, normal_channels=(16, 16, 16), tex_head_width=48,
-                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250, align_steps=30,
+                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250,
                    tto_photometric_steps=0)
 
     @classmethod
