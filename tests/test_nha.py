@@ -446,13 +446,13 @@ def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_confi
     from headforge.avatars.nha import trainer
 
     dataset = synth_bench[0] / "subject_00"
-    config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1})
+    config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
     monkeypatch.setattr(trainer, "ALIGN_CHECKPOINT_FRAMES", 4)
     real = trainer.align_frames
     chunks, die = [], {"at": 2}
 
     def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
-        if rows is not None:  # training-frame alignment (validation fits pass no rows)
+        if rows is not None and steps == cfg.align_steps:  # training-frame alignment (not a validation fit)
             chunks.append(rows.tolist())
             if len(chunks) == die["at"]:
                 raise KeyboardInterrupt
@@ -472,6 +472,54 @@ def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_confi
     assert chunks[0] == [4, 5, 6, 7] and chunks[-1][-1] == n_train - 1 and len(chunks) == -(-(n_train - 4) // 4)
     assert any(f"aligning training frames 4..{n_train}" in m for m in logs)
     assert json.loads((run / "state.json").read_text())["aligned"] == n_train
+
+
+def test_a_run_killed_during_the_test_time_fitting_resumes_there(synth_bench, tiny_config, tmp_path, monkeypatch):
+    """The held-out frames' test-time fitting checkpoints every TTO_CHECKPOINT_FRAMES frames: a
+    kill in the middle of it keeps the frames fitted so far, and the resumed run neither trains
+    nor fits the matte again, fits only the remaining frames and then writes the metrics."""
+    from headforge.avatars.nha import trainer
+
+    dataset = synth_bench[0] / "subject_00"
+    config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
+    monkeypatch.setattr(trainer, "TTO_CHECKPOINT_FRAMES", 4)
+    real_align, real_matte = trainer.align_frames, trainer.fit_matte
+    chunks, mattes, die = [], [], {"at": 2}
+
+    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+        if rows is not None and steps == cfg.tto_steps:  # the held-out frames' test-time fitting
+            chunks.append(rows.tolist())
+            if len(chunks) == die["at"]:
+                raise KeyboardInterrupt
+        return real_align(avatar, data, K, cfg, steps, photometric_steps, rows)
+
+    def counting_matte(*args, **kwargs):
+        mattes.append(1)
+        return real_matte(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "align_frames", recording)
+    monkeypatch.setattr(trainer, "fit_matte", counting_matte)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        trainer.fit(dataset, run, config, log=lambda m: None)
+    state = json.loads((run / "state.json").read_text())
+    assert (state["iteration"], state["tested"]) == (config.total_iters, 4)
+    assert not (run / "metrics.json").exists() and len(mattes) == 1
+    killed = trainer.load_run(run)[0]
+    fitted, sigma = killed.frames["expression"].detach().clone(), float(killed.matte_sigma)
+    chunks.clear()
+    die["at"] = -1
+    losses_before = (run / "losses.csv").read_text()
+    metrics = trainer.fit(dataset, run, config, log=lambda m: None)
+    val = trainer.FrameData(dataset, "val", config.resolution)
+    n_val = len(val)
+    assert n_val > 4 and [r for c in chunks for r in c] == list(range(4, n_val))  # only the rest, once
+    assert len(mattes) == 1 and (run / "losses.csv").read_text() == losses_before  # no training, no new matte
+    assert json.loads((run / "metrics.json").read_text())["val_psnr"] == metrics["val_psnr"]
+    assert metrics["matte_sigma_px"] == pytest.approx(sigma)
+    resumed = trainer.load_run(run)[0].frames["expression"].detach()
+    first = val.index[:4]  # the frames fitted before the kill keep their parameters
+    assert torch.equal(resumed[first], fitted[first])
 
 
 def test_soft_matte_changes_only_the_edge_and_old_runs_load_without_it(synth_bench, tiny_config, tmp_path):
