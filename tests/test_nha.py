@@ -440,6 +440,25 @@ def test_device_choice_is_checked(tmp_path, monkeypatch):
     assert not (tmp_path / "r").exists()
 
 
+def record_chunks(monkeypatch, trainer, steps_field: str, die_at: int) -> tuple[list, dict]:
+    """Patch ``trainer.align_frames`` to record the ``rows`` of each call made with
+    ``cfg.<steps_field>`` steps and a row chunk (the training-frame alignment: align_steps; the
+    held-out frames' test-time fitting: tto_steps) and to raise KeyboardInterrupt (a kill) on
+    the ``die["at"]``-th such call. Returns (chunks, die)."""
+    real = trainer.align_frames
+    chunks, die = [], {"at": die_at}
+
+    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+        if rows is not None and steps == getattr(cfg, steps_field):
+            chunks.append(rows.tolist())
+            if len(chunks) == die["at"]:
+                raise KeyboardInterrupt
+        return real(avatar, data, K, cfg, steps, photometric_steps, rows)
+
+    monkeypatch.setattr(trainer, "align_frames", recording)
+    return chunks, die
+
+
 def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_config, tmp_path, monkeypatch):
     """Alignment checkpoints every ALIGN_CHECKPOINT_FRAMES frames: a kill in the middle of it
     loses at most that many frames' alignment, and the resumed run aligns only the rest."""
@@ -448,17 +467,7 @@ def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_confi
     dataset = synth_bench[0] / "subject_00"
     config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
     monkeypatch.setattr(trainer, "ALIGN_CHECKPOINT_FRAMES", 4)
-    real = trainer.align_frames
-    chunks, die = [], {"at": 2}
-
-    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
-        if rows is not None and steps == cfg.align_steps:  # training-frame alignment (not a validation fit)
-            chunks.append(rows.tolist())
-            if len(chunks) == die["at"]:
-                raise KeyboardInterrupt
-        return real(avatar, data, K, cfg, steps, photometric_steps, rows)
-
-    monkeypatch.setattr(trainer, "align_frames", recording)
+    chunks, die = record_chunks(monkeypatch, trainer, "align_steps", die_at=2)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         trainer.fit(dataset, run, config, log=lambda m: None)
@@ -483,21 +492,13 @@ def test_a_run_killed_during_the_test_time_fitting_resumes_there(synth_bench, ti
     dataset = synth_bench[0] / "subject_00"
     config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
     monkeypatch.setattr(trainer, "TTO_CHECKPOINT_FRAMES", 4)
-    real_align, real_matte = trainer.align_frames, trainer.fit_matte
-    chunks, mattes, die = [], [], {"at": 2}
-
-    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
-        if rows is not None and steps == cfg.tto_steps:  # the held-out frames' test-time fitting
-            chunks.append(rows.tolist())
-            if len(chunks) == die["at"]:
-                raise KeyboardInterrupt
-        return real_align(avatar, data, K, cfg, steps, photometric_steps, rows)
+    chunks, die = record_chunks(monkeypatch, trainer, "tto_steps", die_at=2)
+    real_matte, mattes = trainer.fit_matte, []
 
     def counting_matte(*args, **kwargs):
         mattes.append(1)
         return real_matte(*args, **kwargs)
 
-    monkeypatch.setattr(trainer, "align_frames", recording)
     monkeypatch.setattr(trainer, "fit_matte", counting_matte)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
