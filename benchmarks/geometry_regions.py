@@ -29,6 +29,7 @@ from safetensors.numpy import load_file
 
 from headforge.avatars.nha.model import build_template
 from headforge.avatars.nha.trainer import load_run
+from headforge.errors import HeadforgeError
 from headforge.head import load_data
 from headforge.metrics.benchmark import _align_face, exported_geometry, tracked_geometry
 
@@ -56,12 +57,21 @@ def signed_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
+    try:
+        report()
+    except HeadforgeError as err:  # a wrong subject or run folder: one line, no traceback
+        raise SystemExit(f"error: {err}") from None
+
+
+def report() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("subject", type=Path)
     parser.add_argument("run", type=Path)
     parser.add_argument("--frames", type=int, default=4)
     args = parser.parse_args()
 
+    if not (args.subject / "gt" / "geometry.safetensors").is_file():
+        raise HeadforgeError(f"{args.subject} is not a `headforge synth` subject (no gt/geometry.safetensors)")
     gt = load_file(str(args.subject / "gt" / "geometry.safetensors"))
     info = json.loads((args.subject / "gt" / "subject.json").read_text())
     val_rows = np.nonzero(gt["frames"] >= info["train_frames"])[0]
@@ -79,20 +89,19 @@ def main() -> None:
         "nha": (exported_geometry(args.run),
                 region_labels(nha_template.regions, np.asarray(nha_template.v_template))),
     }
+    gf = gt["faces"]
+    hair_faces = (gl[gf] == hair_label).all(1)
+    gt_meshes = [(gt["vertices"][row], trimesh.Trimesh(gt["vertices"][row], gf, process=False),
+                  trimesh.Trimesh(gt["vertices"][row], gf[hair_faces], process=False),
+                  trimesh.Trimesh(gt["vertices"][row], gf[~hair_faces], process=False)) for row in rows]
     figures: dict[str, dict[str, dict[str, float]]] = {}
     for method, (pred, labels) in predictions.items():
         lookup = {int(f): i for i, f in enumerate(pred.frames)}
+        face_faces = pred.faces[pred.face_vertices[pred.faces].all(1)]
+        sel = np.nonzero(pred.head_vertices)[0]
         per_region: dict[str, list[np.ndarray]] = {}
-        for row, frame in zip(rows, frames):
-            verts = pred.vertices[lookup[int(frame)]]
-            gv, gf = gt["vertices"][row], gt["faces"]
-            face_faces = pred.faces[pred.face_vertices[pred.faces].all(1)]
-            aligned = _align_face(verts, face_faces, gv, gf, gl == face_label)
-            hair_faces = (gl[gf] == hair_label).all(1)
-            whole = trimesh.Trimesh(gv, gf, process=False)
-            hair = trimesh.Trimesh(gv, gf[hair_faces], process=False)
-            skin = trimesh.Trimesh(gv, gf[~hair_faces], process=False)
-            sel = np.nonzero(pred.head_vertices)[0]
+        for frame, (gv, whole, hair, skin) in zip(frames, gt_meshes):
+            aligned = _align_face(pred.vertices[lookup[int(frame)]], face_faces, gv, gf, gl == face_label)
             points = aligned[sel]
             d = np.stack([trimesh.proximity.closest_point(whole, points)[1],
                           signed_distance(hair, points), signed_distance(skin, points)], 1)
