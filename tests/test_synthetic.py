@@ -109,6 +109,15 @@ def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
     assert 0.3 < m["hausdorff_face_mm"] < 8  # tracked face within millimetres after alignment
     assert m["hausdorff_face_mm"] <= m["hausdorff_face_camera_mm"] + 0.5
     assert 0.7 < m["normal_consistency"] <= 1
+    # turntable views: GT on top, prediction below, turned alike (the tracked head sits on the GT)
+    R = int(json.loads((subject / "gt" / "subject.json").read_text())["resolution"])
+    views = result["views"]
+    assert views.shape == (2 * R, 4 * R, 3)
+    drawn = np.abs(views - 0.5).sum(-1) > 1e-3
+    for k in range(4):
+        gt_px, pred_px = drawn[:R, k * R:(k + 1) * R], drawn[R:, k * R:(k + 1) * R]
+        assert pred_px.any() and (gt_px & pred_px).sum() > 0.8 * pred_px.sum()
+    assert not np.array_equal(drawn[R:, :R], drawn[R:, 2 * R:3 * R])  # the views really turn
 
 
 def test_geometry_eval_refuses_bad_inputs(bench, tmp_path):

@@ -120,6 +120,26 @@ def _align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.nda
     return verts @ matrix[:3, :3].T + matrix[:3, 3]
 
 
+def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices: np.ndarray,
+                    pred_faces: np.ndarray, K: np.ndarray, resolution: int,
+                    yaws_deg: tuple[float, ...] = (0.0, 60.0, 90.0, 150.0)) -> np.ndarray:
+    """(2R, len(yaws) R, 3) normal-map picture in [0, 1]: the GT mesh (top row) and the
+    prediction (bottom row), both camera space in metres, turned by the same ``yaws_deg`` about
+    the camera's vertical axis through the GT mesh's centroid. The frontal error map shows only
+    what the camera saw; these views show the top and back, which a monocular clip rarely does."""
+    pivot = np.asarray(gt_vertices, np.float64).mean(0)
+    rows = []
+    for verts, faces in ((gt_vertices, gt_faces), (pred_vertices, pred_faces)):
+        tiles = []
+        for yaw in np.radians(yaws_deg):
+            c, s = np.cos(yaw), np.sin(yaw)
+            R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            n = render_normals((np.asarray(verts, np.float64) - pivot) @ R.T + pivot, faces, K, resolution)
+            tiles.append(np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, 0.5 * (n + 1), 0.5))
+        rows.append(np.concatenate(tiles, 1))
+    return np.concatenate(rows, 0)
+
+
 def _faces_in(faces: np.ndarray, vertex_mask: np.ndarray) -> np.ndarray:
     return vertex_mask[faces].all(1)
 
@@ -155,7 +175,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     head_labels = np.array(info["head_labels"])
     face_sel = _faces_in(prediction.faces, prediction.face_vertices)
     head_sel = _faces_in(prediction.faces, prediction.head_vertices)
-    per_frame, error_maps = [], []
+    per_frame, error_maps, views = [], [], None
     for row, f in zip(rows, frames):
         i = lookup[int(f)]
         verts = prediction.vertices[i]
@@ -180,6 +200,8 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         full = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
         face = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
         verts = aligned
+        if views is None:
+            views = turntable_views(gv, gf, aligned, prediction.faces[head_sel], K, res)
         pm = trimesh.Trimesh(verts, prediction.faces[head_sel], process=False)
         pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
         gm = trimesh.Trimesh(gv, gf, process=False)
@@ -198,7 +220,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     mean = {k: float(np.mean([r[k] for r in per_frame])) for k in keys}
     return {"prediction": prediction.source, "subject": str(subject), "split": split, "frames": len(per_frame),
             "frames_available": int(split_mask[split].sum()), "mean": mean, "per_frame": per_frame,
-            "error_maps": error_maps, "hair": info["subject"]["hair_style"]}
+            "error_maps": error_maps, "views": views, "hair": info["subject"]["hair_style"]}
 
 
 def write_geometry_report(result: dict, out_dir: Path) -> None:
@@ -206,6 +228,7 @@ def write_geometry_report(result: dict, out_dir: Path) -> None:
 
     out_dir.mkdir(parents=True, exist_ok=True)
     maps = result.pop("error_maps")
+    views = result.pop("views", None)
     (out_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     lines = [f"Geometry of {result['prediction']} against {result['subject']} ({result['split']} split): "
              f"{result['frames']} of {result['frames_available']} ground-truth frames.", "",
@@ -214,3 +237,5 @@ def write_geometry_report(result: dict, out_dir: Path) -> None:
     (out_dir / "metrics.md").write_text("\n".join(lines) + "\n")
     if maps:
         write_png(out_dir / "normal_error.png", np.clip(np.concatenate(maps, 0), 0, 1))
+    if views is not None:
+        write_png(out_dir / "views.png", np.clip(views, 0, 1))
