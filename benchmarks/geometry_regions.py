@@ -6,8 +6,9 @@ SUBJECT is one `headforge synth` subject folder (with gt/), RUN an NHA run folde
 (with geometry.safetensors from its test-time fitting). For ``--frames`` evenly spaced GT frames
 of the validation split, both the tracked head model and the NHA avatar are rigidly aligned to the
 GT face exactly as Table 1 aligns them (`headforge.metrics.benchmark`), then every vertex of the
-full head (neck excluded) is assigned to its template region (the scalp split into top-back,
-back and the rest by position) and measured against the GT mesh:
+full head (neck excluded) is assigned to its template region (the scalp split by position into
+top-back, back and the rest; on the open-head template the whole scalp region lies behind the
+head's centroid, so the rest is empty) and measured against the GT mesh:
 
 - ``mm``: distance to the whole GT mesh (Table 1's one-sided distance, per vertex, not per area);
 - ``hair_mm`` / ``skin_mm``: signed distance to the GT hair and to the GT non-hair surface,
@@ -31,7 +32,7 @@ from headforge.avatars.nha.model import build_template
 from headforge.avatars.nha.trainer import load_run
 from headforge.errors import HeadforgeError
 from headforge.head import load_data
-from headforge.metrics.benchmark import _align_face, exported_geometry, tracked_geometry
+from headforge.metrics.benchmark import align_face, exported_geometry, tracked_geometry
 
 
 def region_labels(regions: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarray:
@@ -70,11 +71,16 @@ def report() -> None:
     parser.add_argument("--frames", type=int, default=4)
     args = parser.parse_args()
 
-    if not (args.subject / "gt" / "geometry.safetensors").is_file():
-        raise HeadforgeError(f"{args.subject} is not a `headforge synth` subject (no gt/geometry.safetensors)")
+    if not all((args.subject / "gt" / name).is_file() for name in ("geometry.safetensors", "subject.json")):
+        raise HeadforgeError(f"{args.subject} is not a `headforge synth` subject (gt/geometry.safetensors or "
+                             "gt/subject.json missing)")
+    if args.frames < 1:
+        raise HeadforgeError(f"--frames must be >= 1, got {args.frames}")
     gt = load_file(str(args.subject / "gt" / "geometry.safetensors"))
     info = json.loads((args.subject / "gt" / "subject.json").read_text())
     val_rows = np.nonzero(gt["frames"] >= info["train_frames"])[0]
+    if len(val_rows) == 0:
+        raise HeadforgeError(f"{args.subject} has no ground-truth frames in its validation split")
     rows = val_rows[np.linspace(0, len(val_rows) - 1, args.frames).round().astype(int)]
     frames = gt["frames"][rows]
     hair_label, face_label = info["labels"]["hair"], info["labels"]["face"]
@@ -101,7 +107,7 @@ def report() -> None:
         sel = np.nonzero(pred.head_vertices)[0]
         per_region: dict[str, list[np.ndarray]] = {}
         for frame, (gv, whole, hair, skin) in zip(frames, gt_meshes):
-            aligned = _align_face(pred.vertices[lookup[int(frame)]], face_faces, gv, gf, gl == face_label)
+            aligned = align_face(pred.vertices[lookup[int(frame)]], face_faces, gv, gf, gl == face_label)
             points = aligned[sel]
             d = np.stack([trimesh.proximity.closest_point(whole, points)[1],
                           signed_distance(hair, points), signed_distance(skin, points)], 1)

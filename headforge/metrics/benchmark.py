@@ -109,7 +109,7 @@ def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resol
     return torch.where(frags.mask[..., None], n, torch.zeros(3))[0].numpy()
 
 
-def _align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                 gt_face_vertices: np.ndarray) -> np.ndarray:
     """``verts`` moved by the rigid ICP transform that aligns the predicted face surface to the
     GT face surface (point-to-point on dense samples)."""
@@ -130,11 +130,12 @@ def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices
     pivot = np.asarray(gt_vertices, np.float64).mean(0)
     rows = []
     for verts, faces in ((gt_vertices, gt_faces), (pred_vertices, pred_faces)):
+        centred = np.asarray(verts, np.float64) - pivot
         tiles = []
         for yaw in np.radians(yaws_deg):
             c, s = np.cos(yaw), np.sin(yaw)
             R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-            n = render_normals((np.asarray(verts, np.float64) - pivot) @ R.T + pivot, faces, K, resolution)
+            n = render_normals(centred @ R.T + pivot, faces, K, resolution)
             tiles.append(np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, 0.5 * (n + 1), 0.5))
         rows.append(np.concatenate(tiles, 1))
     return np.concatenate(rows, 0)
@@ -196,7 +197,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         gv, gf = gt["vertices"][row], gt["faces"]
         cam_full = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
         cam_face = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
-        aligned = _align_face(verts, prediction.faces[face_sel], gv, gf, gt["labels"] == labels_face)
+        aligned = align_face(verts, prediction.faces[face_sel], gv, gf, gt["labels"] == labels_face)
         full = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
         face = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
         verts = aligned
