@@ -95,6 +95,17 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
 
 
+def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
+    from dataclasses import replace
+
+    from headforge.avatars.nha.trainer import build_avatar
+
+    avatar, _ = build_avatar(synth_bench[0] / "subject_00", replace(tiny_config, laplacian_scalp=0.37))
+    scalp = avatar.head.region("scalp")
+    assert len(scalp) > 100 and torch.all(avatar.laplacian_weight[scalp] == 0.37)
+    assert avatar.laplacian_weight[avatar.head.region("face")].min() == 20.0
+
+
 def test_offsets_on_the_neck_rows_equal_the_full_network_evaluation(synth_bench, tiny_config):
     """The conditioned G runs on the neck-fade vertices only; values and neck-pose gradients are
     those of NHA's blend over every vertex (the pure-PyTorch reference below)."""
@@ -347,6 +358,10 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
     with pytest.raises(KeyboardInterrupt):
         fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(3))
     assert json.loads((run / "state.json").read_text())["iteration"] == 2
+    # a run written before a config field existed resumes with that field's default
+    written = json.loads((run / "config.json").read_text())
+    del written["config"]["laplacian_scalp"]
+    (run / "config.json").write_text(json.dumps(written))
     logs = []
     metrics = fit(dataset, run, tiny_config, log=logs.append)
     assert any("resuming" in m for m in logs)
@@ -392,6 +407,10 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
         load_run(tmp_path)
     (tmp_path / "config.json").write_text(json.dumps({"format": "headforge-run", "method": "point"}))
     with pytest.raises(HeadforgeError, match="not an NHA run"):
+        load_run(tmp_path)
+    newer = {"format": "headforge-run", "method": "nha", "dataset": str(tmp_path), "config": {"hair_cards": 3}}
+    (tmp_path / "config.json").write_text(json.dumps(newer))
+    with pytest.raises(HeadforgeError, match="another headforge version .*hair_cards"):
         load_run(tmp_path)
     with pytest.raises(HeadforgeError, match="not a headforge dataset"):
         fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)

@@ -27,8 +27,9 @@ FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose
 LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
 # MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
 EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tolist()
-# Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp).
-LAPLACIAN_WEIGHTS = {"scalp": 0.1, "neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
+# Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp); the
+# scalp's weight is NHAConfig.laplacian_scalp.
+LAPLACIAN_WEIGHTS = {"neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}
 
 
@@ -92,7 +93,7 @@ class NeuralHeadAvatar(nn.Module):
         # the vertices with dynamic offsets: G's conditioned evaluation runs on these only
         self.register_buffer("neck_rows", torch.nonzero(self.neck_fade[:, 0] > 0)[:, 0], persistent=False)  # derived
         lap = torch.full((V,), 1.0)
-        for name, w in LAPLACIAN_WEIGHTS.items():
+        for name, w in (LAPLACIAN_WEIGHTS | {"scalp": config.laplacian_scalp}).items():
             lap[region(name)] = w
         self.register_buffer("laplacian_weight", lap)
         mouth = torch.zeros(V, dtype=torch.bool)
