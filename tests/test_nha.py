@@ -362,6 +362,8 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
     written = json.loads((run / "config.json").read_text())
     del written["config"]["laplacian_scalp"]
     (run / "config.json").write_text(json.dumps(written))
+    with pytest.raises(HeadforgeError, match="other settings"):  # ... not with another value of it
+        fit(dataset, run, type(tiny_config)(**{**tiny_config.__dict__, "laplacian_scalp": 0.5}), log=lambda m: None)
     logs = []
     metrics = fit(dataset, run, tiny_config, log=logs.append)
     assert any("resuming" in m for m in logs)

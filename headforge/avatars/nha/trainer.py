@@ -584,7 +584,8 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     if resume:
         previous = json.loads((run / "config.json").read_text())
         # fields added since the run was written count with their defaults (the behaviour it had)
-        filled = previous | {"config": asdict(config) | previous.get("config", {})}
+        defaults = json.loads(json.dumps({f.name: f.default for f in fields(NHAConfig)}))
+        filled = previous | {"config": defaults | previous.get("config", {})}
         if filled != json.loads(json.dumps(info)):
             raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
     avatar, meta = build_avatar(dataset, config)  # reads and checks the dataset first
