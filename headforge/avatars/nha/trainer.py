@@ -141,6 +141,15 @@ class NHAConfig:
             raise HeadforgeError(f"--set {name}: {text!r} is not a {type(current).__name__}") from None
         setattr(self, name, value)
 
+    @classmethod
+    def from_saved(cls, saved: dict, source: Path) -> "NHAConfig":
+        """The config recorded in ``source``'s config.json; settings added since it was written
+        take their defaults (the behaviour the run had), settings this version lacks are refused."""
+        unknown = sorted(set(saved) - {f.name for f in fields(cls)})
+        if unknown:
+            raise HeadforgeError(f"{source} was written by another headforge version (unknown settings {', '.join(unknown)})")
+        return cls(**saved)
+
     @property
     def total_iters(self) -> int:
         return self.geometry_iters + self.texture_iters + self.joint_iters
@@ -436,10 +445,7 @@ def load_run(run: Path, device: torch.device | str = "cpu"):
     info = json.loads(cfg_path.read_text())
     if info.get("format") != RUN_FORMAT or info.get("method") != "nha":
         raise HeadforgeError(f"{run} is not an NHA run (method {info.get('method')!r})")
-    unknown = sorted(set(info["config"]) - {f.name for f in fields(NHAConfig)})
-    if unknown:
-        raise HeadforgeError(f"{run} was written by another headforge version (unknown settings {', '.join(unknown)})")
-    config = NHAConfig(**info["config"])
+    config = NHAConfig.from_saved(info["config"], run)
     avatar, meta = build_avatar(Path(info["dataset"]), config)
     ckpt = run / "checkpoint.safetensors"
     if not ckpt.is_file():
@@ -583,10 +589,8 @@ def fit(dataset: str | Path, run: str | Path, config: NHAConfig, log=print, prog
     resume = (run / "config.json").is_file() and (run / "state.json").is_file()
     if resume:
         previous = json.loads((run / "config.json").read_text())
-        # fields added since the run was written count with their defaults (the behaviour it had)
-        defaults = json.loads(json.dumps({f.name: f.default for f in fields(NHAConfig)}))
-        filled = previous | {"config": defaults | previous.get("config", {})}
-        if filled != json.loads(json.dumps(info)):
+        saved = previous | {"config": asdict(NHAConfig.from_saved(previous.get("config", {}), run))}
+        if json.loads(json.dumps(saved)) != json.loads(json.dumps(info)):
             raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
     avatar, meta = build_avatar(dataset, config)  # reads and checks the dataset first
     train = FrameData(dataset, "train", config.resolution).to(device)
