@@ -16,7 +16,7 @@ from pathlib import Path
 from headforge.metrics.benchmark import evaluate_geometry
 
 KEYS = ("normal_error_head_deg", "normal_error_face_deg", "hausdorff_full_mm", "hausdorff_face_mm",
-        "hausdorff_full_camera_mm", "normal_consistency")
+        "hausdorff_full_camera_mm", "normal_consistency", "hausdorff_full_outer_mm", "head_coverage")
 
 
 def main() -> None:

@@ -109,6 +109,9 @@ def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
     assert 0.3 < m["hausdorff_face_mm"] < 8  # tracked face within millimetres after alignment
     assert m["hausdorff_face_mm"] <= m["hausdorff_face_camera_mm"] + 0.5
     assert 0.7 < m["normal_consistency"] <= 1
+    # the bald head model lies under the short hair: farther from the outer surface alone
+    assert m["hausdorff_full_outer_mm"] > m["hausdorff_full_mm"]
+    assert 0.5 < m["head_coverage"] < 1  # the hair the head model lacks is left uncovered
     # turntable views: GT on top, prediction below, turned alike (the tracked head sits on the GT)
     R = int(json.loads((subject / "gt" / "subject.json").read_text())["resolution"])
     views = result["views"]
@@ -118,6 +121,46 @@ def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
         gt_px, pred_px = drawn[:R, k * R:(k + 1) * R], drawn[R:, k * R:(k + 1) * R]
         assert pred_px.any() and (gt_px & pred_px).sum() > 0.8 * pred_px.sum()
     assert not np.array_equal(drawn[R:, :R], drawn[R:, 2 * R:3 * R])  # the views really turn
+
+
+def test_outer_surface_drops_the_scalp_under_the_hair_and_the_hair_shell_inside_the_skin():
+    """A unit-sphere head whose top is covered by a closed hair volume from r = 0.98 (under the
+    skin) to r = 1.2 above z = 0.31: only the outer hair cap, its rim and the bare lower skin are outer."""
+    import trimesh
+
+    from headforge.metrics.benchmark import outer_surface_faces
+    from headforge.metrics.geometry import one_sided_hausdorff
+
+    from skimage.measure import marching_cubes
+
+    head = trimesh.creation.icosphere(subdivisions=4)
+    step = 0.04  # the hair volume meshed like the synth's: marching cubes of its SDF, closed by padding
+    axis = np.arange(-1.4, 1.4 + step / 2, step)
+    g = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    r = np.linalg.norm(g, axis=-1)
+    sdf = np.pad(np.maximum(np.maximum(r - 1.2, 0.98 - r), 0.31 - g[..., 2]), 1, constant_values=1.0)
+    hv, hf, _, _ = marching_cubes(sdf, level=0.0, spacing=(step,) * 3)
+    hair = max(trimesh.Trimesh(hv + axis[0] - step, hf, process=True).split(only_watertight=False),
+               key=lambda m: len(m.faces))  # as build_hair: the main part, not 2-face slivers
+    if hair.volume < 0:
+        hair.invert()
+    assert hair.is_watertight
+    vertices = np.concatenate([head.vertices, hair.vertices])
+    faces = np.concatenate([head.faces, hair.faces + len(head.vertices)])
+    labels = np.concatenate([np.full(len(head.vertices), 2), np.full(len(hair.vertices), 3)])
+    keep = outer_surface_faces(vertices, faces, labels, hair_label=3)
+    centres = vertices[faces].mean(1)
+    r, z = np.linalg.norm(centres, axis=1), centres[:, 2]
+    is_hair = np.arange(len(faces)) >= len(head.faces)
+    assert not keep[~is_hair & (z > 0.35)].any()  # scalp under the hair
+    assert keep[~is_hair & (z < 0.25)].all()  # bare skin
+    assert not keep[is_hair & (r < 0.99) & (z > 0.35)].any()  # the hair's inner shell
+    assert keep[is_hair & (r > 1.19)].all()  # the hair's outer surface
+    # a bald prediction (the unit sphere) is near the hidden surfaces, ~the hair depth from the outer one
+    bald_top = head.faces[head.triangles_center[:, 2] > 0.5]
+    to_all = one_sided_hausdorff(head.vertices, bald_top, vertices, faces, samples=2000)["mean"]
+    to_outer = one_sided_hausdorff(head.vertices, bald_top, vertices, faces[keep], samples=2000)["mean"]
+    assert to_all < 0.01 and 0.15 < to_outer < 0.21
 
 
 def test_geometry_eval_refuses_bad_inputs(bench, tmp_path):
