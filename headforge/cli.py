@@ -438,7 +438,8 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
         for name, pred in (("tracked", dataset), ("nha", tmp / "nha")):
             result = evaluate_geometry(pred, dataset, samples=5000)
             write_geometry_report(result, tmp / f"eval_{name}")
-            for k in ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm"):
+            for k in ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm", "hausdorff_full_outer_mm",
+                      "head_coverage"):
                 metrics[f"{name}_{k}"] = round(result["mean"][k], 3)
     metrics["demo_minutes"] = round((time.perf_counter() - start_all) / 60, 2)
     (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
