@@ -23,15 +23,10 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from headforge.errors import HeadforgeError
-from headforge.metrics.benchmark import exported_geometry, render_normals, tracked_geometry
-
-
-def load_prediction(path: Path, frames: np.ndarray):
-    return tracked_geometry(path, frames) if (path / "tracking.safetensors").is_file() else exported_geometry(path)
+from headforge.metrics.benchmark import load_prediction, read_gt_maps, render_normals
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -55,10 +50,8 @@ def compare(subject: Path, pred_a: Path, pred_b: Path, every: int) -> dict:
     preds = {"a": load_prediction(pred_a, frames), "b": load_prediction(pred_b, frames)}
     per_frame = []
     for f in frames:
-        name = f"{int(f):05d}.png"
-        gt_n = cv2.imread(str(subject / "gt" / "normals" / name), -1)[..., ::-1].astype(np.float32) / 255 * 2 - 1
+        gt_n, labels = read_gt_maps(subject, int(f), res)
         gt_n /= np.maximum(np.linalg.norm(gt_n, axis=-1, keepdims=True), 1e-6)
-        labels = cv2.imread(str(subject / "gt" / "labels" / name), 0)
         head, hair = np.isin(labels, info["head_labels"]), labels == info["labels"]["hair"]
         err, cov = {}, {}
         for key, pred in preds.items():

@@ -127,11 +127,10 @@ def test_outer_surface_drops_the_scalp_under_the_hair_and_the_hair_shell_inside_
     """A unit-sphere head whose top is covered by a closed hair volume from r = 0.98 (under the
     skin) to r = 1.2 above z = 0.31: only the outer hair cap, its rim and the bare lower skin are outer."""
     import trimesh
+    from skimage.measure import marching_cubes
 
     from headforge.metrics.benchmark import outer_surface_faces
     from headforge.metrics.geometry import one_sided_hausdorff
-
-    from skimage.measure import marching_cubes
 
     head = trimesh.creation.icosphere(subdivisions=4)
     step = 0.04  # the hair volume meshed like the synth's: marching cubes of its SDF, closed by padding

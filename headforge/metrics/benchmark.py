@@ -102,6 +102,22 @@ def _read_png(path: Path, flags) -> np.ndarray:
     return image
 
 
+def load_prediction(pred: Path, frames: np.ndarray) -> PredictedGeometry:
+    """A tracked dataset's head model at ``frames``, or a folder's exported geometry."""
+    return tracked_geometry(pred, frames) if (pred / "tracking.safetensors").is_file() else exported_geometry(pred)
+
+
+def read_gt_maps(subject: Path, frame: int, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """A synth subject's GT maps of ``frame``: (R, R, 3) camera-space normals (as stored, unit
+    length where covered, 0 elsewhere) and (R, R) uint8 segmentation labels."""
+    name = f"{frame:05d}.png"
+    normals = _read_png(subject / "gt" / "normals" / name, -1)[..., ::-1].astype(np.float32) / 255 * 2 - 1
+    labels = _read_png(subject / "gt" / "labels" / name, 0)
+    if normals.shape[:2] != (resolution, resolution) or labels.shape != (resolution, resolution):
+        raise HeadforgeError(f"{subject / 'gt' / 'normals' / name} does not match the resolution {resolution}")
+    return normals, labels
+
+
 def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resolution: int) -> np.ndarray:
     """(R, R, 3) camera-space unit normals of a camera-space mesh, zero where empty."""
     from headforge.head.topology import vertex_normals
@@ -194,7 +210,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     if len(rows) == 0:
         raise HeadforgeError(f"{subject} has no ground-truth frames in split {split!r}")
     frames = gt["frames"][rows]
-    prediction = tracked_geometry(pred, frames) if (pred / "tracking.safetensors").is_file() else exported_geometry(pred)
+    prediction = load_prediction(pred, frames)
     lookup = {int(f): i for i, f in enumerate(prediction.frames)}
     missing = [int(f) for f in frames if int(f) not in lookup]
     if missing:
@@ -211,11 +227,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     for row, f in zip(rows, frames):
         i = lookup[int(f)]
         verts = prediction.vertices[i]
-        name = f"{int(f):05d}.png"
-        gt_n = _read_png(subject / "gt" / "normals" / name, -1)[..., ::-1].astype(np.float32) / 255 * 2 - 1
-        labels = _read_png(subject / "gt" / "labels" / name, 0)
-        if gt_n.shape[:2] != (res, res) or labels.shape != (res, res):
-            raise HeadforgeError(f"{subject / 'gt' / 'normals' / name} does not match the resolution {res}")
+        gt_n, labels = read_gt_maps(subject, int(f), res)
         pred_n = render_normals(verts, prediction.faces, K, res)
         covered = (np.linalg.norm(pred_n, axis=-1) > 0.5) & (labels > 0)
         face_px = covered & (labels == labels_face)
