@@ -12,7 +12,9 @@ head's centroid, so the rest is empty) and measured against the GT mesh:
 
 - ``mm``: distance to the whole GT mesh (Table 1's one-sided distance, per vertex, not per area);
 - ``hair_mm`` / ``skin_mm``: signed distance to the GT hair and to the GT non-hair surface,
-  positive outside (along the GT face normal of the closest point).
+  positive outside (along the GT face normal of the closest point);
+- ``outer_mm``: distance to the GT's outer surface only (Table 1's ``hausdorff_full_outer_mm``
+  per vertex: without the scalp under the hair and the hair volume's inner shell).
 
 Prints a table (tracked → NHA per region) and, last, one JSON line with every figure.
 A surface that ends inside a hair shell shows ``skin_mm > 0`` and ``hair_mm < 0``.
@@ -32,7 +34,7 @@ from headforge.avatars.nha.model import build_template
 from headforge.avatars.nha.trainer import load_run
 from headforge.errors import HeadforgeError
 from headforge.head import load_data
-from headforge.metrics.benchmark import align_face, exported_geometry, tracked_geometry
+from headforge.metrics.benchmark import align_face, exported_geometry, outer_surface_faces, tracked_geometry
 
 
 def region_labels(regions: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarray:
@@ -97,20 +99,23 @@ def report() -> None:
     }
     gf = gt["faces"]
     hair_faces = (gl[gf] == hair_label).all(1)
+    outer = outer_surface_faces(gt["vertices"][rows[0]], gf, gl, hair_label)
     gt_meshes = [(gt["vertices"][row], trimesh.Trimesh(gt["vertices"][row], gf, process=False),
                   trimesh.Trimesh(gt["vertices"][row], gf[hair_faces], process=False),
-                  trimesh.Trimesh(gt["vertices"][row], gf[~hair_faces], process=False)) for row in rows]
+                  trimesh.Trimesh(gt["vertices"][row], gf[~hair_faces], process=False),
+                  trimesh.Trimesh(gt["vertices"][row], gf[outer], process=False)) for row in rows]
     figures: dict[str, dict[str, dict[str, float]]] = {}
     for method, (pred, labels) in predictions.items():
         lookup = {int(f): i for i, f in enumerate(pred.frames)}
         face_faces = pred.faces[pred.face_vertices[pred.faces].all(1)]
         sel = np.nonzero(pred.head_vertices)[0]
         per_region: dict[str, list[np.ndarray]] = {}
-        for frame, (gv, whole, hair, skin) in zip(frames, gt_meshes):
+        for frame, (gv, whole, hair, skin, outer_mesh) in zip(frames, gt_meshes):
             aligned = align_face(pred.vertices[lookup[int(frame)]], face_faces, gv, gf, gl == face_label)
             points = aligned[sel]
             d = np.stack([trimesh.proximity.closest_point(whole, points)[1],
-                          signed_distance(hair, points), signed_distance(skin, points)], 1)
+                          signed_distance(hair, points), signed_distance(skin, points),
+                          trimesh.proximity.closest_point(outer_mesh, points)[1]], 1)
             for region in np.unique(labels[sel]):
                 per_region.setdefault(region, []).append(d[labels[sel] == region])
         figures[method] = {}
@@ -119,14 +124,18 @@ def report() -> None:
             figures[method][region] = {"vertices": len(d) // len(rows), "mm": 1000 * float(d[:, 0].mean()),
                                        "hair_mm": 1000 * float(d[:, 1].mean()),
                                        "skin_mm": 1000 * float(d[:, 2].mean()),
-                                       "inside_hair": float((d[:, 1] < 0).mean())}
-    print(f"{'region':16s} {'verts':>6s} | {'mm':>14s} | {'hair_mm (signed)':>16s} | {'skin_mm (signed)':>16s}")
-    print(f"{'':16s} {'(nha)':>6s} | {'tracked → nha':>14s} | {'tracked → nha':>16s} | {'tracked → nha':>16s}")
+                                       "inside_hair": float((d[:, 1] < 0).mean()),
+                                       "outer_mm": 1000 * float(d[:, 3].mean())}
+    print(f"{'region':16s} {'verts':>6s} | {'mm':>14s} | {'hair_mm (signed)':>16s} | {'skin_mm (signed)':>16s} | "
+          f"{'outer_mm':>14s}")
+    print(f"{'':16s} {'(nha)':>6s} | {'tracked → nha':>14s} | {'tracked → nha':>16s} | {'tracked → nha':>16s} | "
+          f"{'tracked → nha':>14s}")
     for region in sorted(figures["nha"]):
         n = figures["nha"][region]
         t = figures["tracked"].get(region)
         cell = lambda key: f"{t[key]:6.2f} → {n[key]:6.2f}" if t else f"{'':6s}   {n[key]:6.2f}"  # noqa: E731
-        print(f"{region:16s} {n['vertices']:6d} | {cell('mm'):>14s} | {cell('hair_mm'):>16s} | {cell('skin_mm'):>16s}")
+        print(f"{region:16s} {n['vertices']:6d} | {cell('mm'):>14s} | {cell('hair_mm'):>16s} | {cell('skin_mm'):>16s} | "
+              f"{cell('outer_mm'):>14s}")
     print(json.dumps({"subject": str(args.subject), "run": str(args.run), "frames": [int(f) for f in frames],
                       "regions": figures}))
 
