@@ -28,13 +28,13 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from safetensors.numpy import load_file
 
 from headforge.avatars.nha.model import build_template
 from headforge.avatars.nha.trainer import load_run
 from headforge.errors import HeadforgeError
 from headforge.head import load_data
-from headforge.metrics.benchmark import align_face, exported_geometry, outer_surface_faces, tracked_geometry
+from headforge.metrics.benchmark import (align_face, exported_geometry, load_subject_gt, outer_surface_faces,
+                                         prediction_rows, tracked_geometry)
 
 
 def region_labels(regions: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarray:
@@ -73,13 +73,9 @@ def report() -> None:
     parser.add_argument("--frames", type=int, default=4)
     args = parser.parse_args()
 
-    if not all((args.subject / "gt" / name).is_file() for name in ("geometry.safetensors", "subject.json")):
-        raise HeadforgeError(f"{args.subject} is not a `headforge synth` subject (gt/geometry.safetensors or "
-                             "gt/subject.json missing)")
     if args.frames < 1:
         raise HeadforgeError(f"--frames must be >= 1, got {args.frames}")
-    gt = load_file(str(args.subject / "gt" / "geometry.safetensors"))
-    info = json.loads((args.subject / "gt" / "subject.json").read_text())
+    gt, info = load_subject_gt(args.subject)
     val_rows = np.nonzero(gt["frames"] >= info["train_frames"])[0]
     if len(val_rows) == 0:
         raise HeadforgeError(f"{args.subject} has no ground-truth frames in its validation split")
@@ -106,12 +102,12 @@ def report() -> None:
                   trimesh.Trimesh(gt["vertices"][row], gf[outer], process=False)) for row in rows]
     figures: dict[str, dict[str, dict[str, float]]] = {}
     for method, (pred, labels) in predictions.items():
-        lookup = {int(f): i for i, f in enumerate(pred.frames)}
+        pred_rows = prediction_rows(pred, frames, pred.source)
         face_faces = pred.faces[pred.face_vertices[pred.faces].all(1)]
         sel = np.nonzero(pred.head_vertices)[0]
         per_region: dict[str, list[np.ndarray]] = {}
-        for frame, (gv, whole, hair, skin, outer_mesh) in zip(frames, gt_meshes):
-            aligned = align_face(pred.vertices[lookup[int(frame)]], face_faces, gv, gf, gl == face_label)
+        for i, (gv, whole, hair, skin, outer_mesh) in zip(pred_rows, gt_meshes):
+            aligned = align_face(pred.vertices[i], face_faces, gv, gf, gl == face_label)
             points = aligned[sel]
             d = np.stack([trimesh.proximity.closest_point(whole, points)[1],
                           signed_distance(hair, points), signed_distance(skin, points),

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from headforge.errors import HeadforgeError
-from headforge.metrics.benchmark import load_prediction, read_gt_maps, render_normals
+from headforge.metrics.benchmark import load_prediction, load_subject_gt, prediction_rows, read_gt_maps, render_normals
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -38,27 +38,23 @@ def mean_or_nan(values: np.ndarray) -> float:
 
 
 def compare(subject: Path, pred_a: Path, pred_b: Path, every: int) -> dict:
-    if not all((subject / "gt" / name).is_file() for name in ("geometry.safetensors", "subject.json")):
-        raise HeadforgeError(f"{subject} is not a `headforge synth` subject (gt/geometry.safetensors or "
-                             "gt/subject.json missing)")
-    from safetensors.numpy import load_file
-
-    gt = load_file(str(subject / "gt" / "geometry.safetensors"))
-    info = json.loads((subject / "gt" / "subject.json").read_text())
+    gt, info = load_subject_gt(subject)
     frames = gt["frames"][gt["frames"] >= info["train_frames"]][::every]
+    if len(frames) == 0:
+        raise HeadforgeError(f"{subject} has no ground-truth frames in its validation split")
     K, res = np.asarray(info["intrinsics"]), int(info["resolution"])
-    preds = {"a": load_prediction(pred_a, frames), "b": load_prediction(pred_b, frames)}
+    preds = {}
+    for key, path in (("a", pred_a), ("b", pred_b)):
+        pred = load_prediction(path, frames)
+        preds[key] = (pred, prediction_rows(pred, frames, path))
     per_frame = []
-    for f in frames:
+    for j, f in enumerate(frames):
         gt_n, labels = read_gt_maps(subject, int(f), res)
         gt_n /= np.maximum(np.linalg.norm(gt_n, axis=-1, keepdims=True), 1e-6)
         head, hair = np.isin(labels, info["head_labels"]), labels == info["labels"]["hair"]
         err, cov = {}, {}
-        for key, pred in preds.items():
-            lookup = {int(x): i for i, x in enumerate(pred.frames)}
-            if int(f) not in lookup:
-                raise HeadforgeError(f"{pred.source} has no geometry for ground-truth frame {int(f)}")
-            n = render_normals(pred.vertices[lookup[int(f)]], pred.faces, K, res)
+        for key, (pred, pred_rows) in preds.items():
+            n = render_normals(pred.vertices[pred_rows[j]], pred.faces, K, res)
             cov[key] = head & (np.linalg.norm(n, axis=-1) > 0.5)
             err[key] = angle_deg(n, gt_n)
         both = cov["a"] & cov["b"]

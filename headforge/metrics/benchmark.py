@@ -102,6 +102,28 @@ def _read_png(path: Path, flags) -> np.ndarray:
     return image
 
 
+def load_subject_gt(subject: Path) -> tuple[dict, dict]:
+    """A ``headforge synth`` subject's ground truth: the arrays of gt/geometry.safetensors
+    (camera-space ``vertices`` (N, V, 3) of GT ``frames`` (N,), ``faces``, vertex ``labels``) and
+    gt/subject.json (camera, resolution, splits, label ids)."""
+    gt_path, info_path = subject / "gt" / "geometry.safetensors", subject / "gt" / "subject.json"
+    if not gt_path.is_file() or not info_path.is_file():
+        raise HeadforgeError(f"{subject} is not a headforge synth subject (gt/geometry.safetensors or gt/subject.json missing)")
+    gt = load_file(str(gt_path))
+    if len(gt["faces"]) == 0:
+        raise HeadforgeError(f"{gt_path}: the ground-truth mesh has no faces")
+    return gt, json.loads(info_path.read_text())
+
+
+def prediction_rows(prediction: PredictedGeometry, frames: np.ndarray, source: Path) -> np.ndarray:
+    """(len(frames),) the row of each GT frame in ``prediction``; an error names a missing one."""
+    lookup = {int(f): i for i, f in enumerate(prediction.frames)}
+    missing = [int(f) for f in frames if int(f) not in lookup]
+    if missing:
+        raise HeadforgeError(f"{source} has no geometry for {len(missing)} ground-truth frames, e.g. frame {missing[0]}")
+    return np.array([lookup[int(f)] for f in frames], dtype=np.int64)
+
+
 def load_prediction(pred: Path, frames: np.ndarray) -> PredictedGeometry:
     """A tracked dataset's head model at ``frames``, or a folder's exported geometry."""
     return tracked_geometry(pred, frames) if (pred / "tracking.safetensors").is_file() else exported_geometry(pred)
@@ -194,14 +216,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
                       every: int = 1) -> dict:
     """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""
     subject, pred = Path(subject), Path(pred)
-    gt_path = subject / "gt" / "geometry.safetensors"
-    info_path = subject / "gt" / "subject.json"
-    if not gt_path.is_file() or not info_path.is_file():
-        raise HeadforgeError(f"{subject} is not a headforge synth subject (gt/geometry.safetensors or gt/subject.json missing)")
-    gt = load_file(str(gt_path))
-    info = json.loads(info_path.read_text())
-    if len(gt["faces"]) == 0:
-        raise HeadforgeError(f"{gt_path}: the ground-truth mesh has no faces")
+    gt, info = load_subject_gt(subject)
     train = info["train_frames"]
     split_mask = {"val": gt["frames"] >= train, "train": gt["frames"] < train, "all": np.ones(len(gt["frames"]), bool)}
     if split not in split_mask:
@@ -211,10 +226,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         raise HeadforgeError(f"{subject} has no ground-truth frames in split {split!r}")
     frames = gt["frames"][rows]
     prediction = load_prediction(pred, frames)
-    lookup = {int(f): i for i, f in enumerate(prediction.frames)}
-    missing = [int(f) for f in frames if int(f) not in lookup]
-    if missing:
-        raise HeadforgeError(f"{pred} has no geometry for {len(missing)} ground-truth frames, e.g. frame {missing[0]}")
+    pred_rows = prediction_rows(prediction, frames, pred)
     K = np.asarray(info["intrinsics"])
     res = int(info["resolution"])
     labels_face = info["labels"]["face"]
@@ -224,8 +236,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     # a rest-like first frame decides which GT faces are outer (the hair rides on the head bone)
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
     per_frame, error_maps, views = [], [], None
-    for row, f in zip(rows, frames):
-        i = lookup[int(f)]
+    for row, f, i in zip(rows, frames, pred_rows):
         verts = prediction.vertices[i]
         gt_n, labels = read_gt_maps(subject, int(f), res)
         pred_n = render_normals(verts, prediction.faces, K, res)
