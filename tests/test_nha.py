@@ -106,6 +106,34 @@ def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
     assert avatar.laplacian_weight[avatar.head.region("face")].min() == 20.0
 
 
+def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_bench, tiny_config):
+    """Hair grown on the scalp (offsets there only) costs the stiff face nothing with
+    ``laplacian_face_cut``, and as much as before without it; smooth offsets elsewhere score the
+    same either way."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.trainer import build_avatar
+
+    subject = synth_bench[0] / "subject_00"
+    plain, _ = build_avatar(subject, tiny_config)
+    cut, _ = build_avatar(subject, replace(tiny_config, laplacian_face_cut=True))
+    V = plain.head.num_vertices
+    hair = torch.zeros(1, V, 3)
+    hair[0, plain.head.region("scalp"), 1] = 5.0  # mm
+    face_only = torch.zeros(V)
+    face_only[plain.head.region("face")] = 1.0
+    for avatar in (plain, cut):
+        avatar.laplacian_weight.copy_(face_only)  # score the face vertices alone
+    assert plain.laplacian_term(hair) > 1e-3
+    assert cut.laplacian_term(hair) == 0.0
+    bump = torch.randn(1, V, 3)
+    for avatar in (plain, cut):
+        avatar.laplacian_weight.fill_(1.0)
+    inside = torch.zeros(V, dtype=torch.bool)
+    inside[plain.head.region("lips")] = True  # far from the hairline: the same neighbourhoods
+    bump[0, ~inside] = 0.0
+    assert torch.allclose(plain.laplacian_term(bump), cut.laplacian_term(bump), rtol=1e-5, atol=1e-7)
+
 def test_offsets_on_the_neck_rows_equal_the_full_network_evaluation(synth_bench, tiny_config):
     """The conditioned G runs on the neck-fade vertices only; values and neck-pose gradients are
     those of NHA's blend over every vertex (the pure-PyTorch reference below)."""

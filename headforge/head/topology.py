@@ -269,6 +269,15 @@ class ConsistentSubdivision:
 
 
 # ---- smoothing, normals, tangent frames ---------------------------------------------------
+def directed_edges(faces: torch.Tensor, V: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unique directed edges i -> j of a triangle mesh (both directions of every edge), sorted
+    by (i, j): two (E,) long tensors."""
+    i = torch.cat([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
+    j = torch.cat([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
+    key = torch.unique(i * V + j)
+    return key // V, key % V
+
+
 def laplacian_smooth(vertices: torch.Tensor, faces: torch.Tensor, strength: torch.Tensor | float = 0.5,
                      iterations: int = 1) -> torch.Tensor:
     """Classic uniform Laplacian smoothing, x <- x + s (mean(neighbours) - x).
@@ -279,10 +288,7 @@ def laplacian_smooth(vertices: torch.Tensor, faces: torch.Tensor, strength: torc
             gives per-region smoothing (HeadCraft keeps subtle parts such as eyes and lips).
     """
     V = vertices.shape[-2]
-    i = torch.cat([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
-    j = torch.cat([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
-    key = torch.unique(i * V + j)
-    i, j = key // V, key % V
+    i, j = directed_edges(faces, V)
     degree = torch.zeros(V, dtype=vertices.dtype, device=vertices.device).index_add_(
         0, i, torch.ones_like(i, dtype=vertices.dtype))
     s = torch.as_tensor(strength, dtype=vertices.dtype, device=vertices.device)

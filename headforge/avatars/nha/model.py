@@ -17,7 +17,7 @@ from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
 from headforge.head.lbs import surface_points
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
-from headforge.head.topology import laplacian_smooth, remove_region, subdivide_head, vertex_normals
+from headforge.head.topology import directed_edges, laplacian_smooth, remove_region, subdivide_head, vertex_normals
 from headforge.render import mesh
 from headforge.render.camera import Cameras
 from headforge.render.matte import soft_matte
@@ -96,6 +96,10 @@ class NeuralHeadAvatar(nn.Module):
         for name, w in (LAPLACIAN_WEIGHTS | {"scalp": config.laplacian_scalp}).items():
             lap[region(name)] = w
         self.register_buffer("laplacian_weight", lap)
+        # With laplacian_face_cut the face's Laplacian averages over face (and ear, neck) neighbours
+        # only: the stiff face (weight 20) is then not dragged along by hair grown on the free scalp.
+        self.register_buffer("laplacian_edges", _edges_without_face_to_scalp(faces, region("face"), region("scalp"), V)
+                             if config.laplacian_face_cut else torch.zeros(0, 2, dtype=torch.long), persistent=False)
         mouth = torch.zeros(V, dtype=torch.bool)
         mouth[region("lips")] = True
         mouth[region("mouth_interior")] = True
@@ -259,8 +263,14 @@ class NeuralHeadAvatar(nn.Module):
         mesh minus that of the template, NHA's E_reg,lapl). Squared rather than NHA's L1: an L1
         subgradient keeps its full size on an already smooth face and, through the shared
         network, drowned the silhouette signal that grows hair."""
-        smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
-        return ((smoothed - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
+        if len(self.laplacian_edges) == 0:
+            smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
+            return ((smoothed - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
+        i, j = self.laplacian_edges.T
+        V = self.head.num_vertices
+        degree = torch.zeros(V, dtype=offsets.dtype, device=offsets.device).index_add_(0, i, torch.ones_like(i, dtype=offsets.dtype))
+        mean = torch.zeros_like(offsets).index_add_(-2, i, offsets.index_select(-2, j)) / degree.clamp(min=1)[:, None]
+        return ((mean - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
 
     def edge_term(self, vertices: torch.Tensor) -> torch.Tensor:
         """NHA's scalp edge-length term, relative to the template: scalp edges stretched beyond
@@ -271,6 +281,18 @@ class NeuralHeadAvatar(nn.Module):
         e = (vertices[:, a] - vertices[:, b]).norm(dim=-1)
         e0 = (self.head.v_template[a] - self.head.v_template[b]).norm(dim=-1).clamp(min=1e-6)
         return torch.relu(e / e0 - 1.5).mean()
+
+
+def _edges_without_face_to_scalp(faces: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor, V: int) -> torch.Tensor:
+    """(E, 2) unique directed mesh edges i -> j (both directions of every edge) except those from
+    a ``face`` vertex to a ``scalp`` vertex."""
+    i, j = directed_edges(faces, V)
+    is_face = torch.zeros(V, dtype=torch.bool)
+    is_face[face] = True
+    is_scalp = torch.zeros(V, dtype=torch.bool)
+    is_scalp[scalp] = True
+    keep = ~(is_face[i] & is_scalp[j])
+    return torch.stack([i[keep], j[keep]], 1)
 
 
 def _boundary_vertices(faces: np.ndarray, V: int) -> np.ndarray:

@@ -82,6 +82,7 @@ class NHAConfig:
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
     laplacian_scalp: float = 0.1  # the scalp's region weight (the face's is 20); README, Table 1
     # section: 1.0 is worse on the synthetic subjects, 0.02 within 0.5 deg / 0.08 mm either way
+    laplacian_face_cut: bool = False  # the face's Laplacian ignores scalp neighbours (model.py)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
     w_edge: float = 10.0
