@@ -82,7 +82,8 @@ class NHAConfig:
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
     laplacian_scalp: float = 0.1  # the scalp's region weight (the face's is 20); README, Table 1
     # section: 1.0 is worse on the synthetic subjects, 0.02 within 0.5 deg / 0.08 mm either way
-    laplacian_face_cut: bool = False  # the face's Laplacian ignores scalp neighbours (model.py)
+    laplacian_face_cut: bool = False  # the face's Laplacian ignores scalp neighbours (model.py); README, Table 1
+    # section: 900 it. bob -2.7 deg, curly better, short/bun +0.08/+0.19 mm; not yet measured at 2000
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
     w_edge: float = 10.0
