@@ -263,7 +263,7 @@ class NeuralHeadAvatar(nn.Module):
         mesh minus that of the template, NHA's E_reg,lapl). Squared rather than NHA's L1: an L1
         subgradient keeps its full size on an already smooth face and, through the shared
         network, drowned the silhouette signal that grows hair."""
-        if len(self.laplacian_edges) == 0:
+        if len(self.laplacian_edges) == 0:  # the shipped path, kept bit-identical to the measured runs
             smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
             return ((smoothed - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
         i, j = self.laplacian_edges.T
