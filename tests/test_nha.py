@@ -115,7 +115,7 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     from headforge.avatars.nha.trainer import build_avatar
 
     subject = synth_bench[0] / "subject_00"
-    plain, _ = build_avatar(subject, tiny_config)
+    plain, _ = build_avatar(subject, replace(tiny_config, laplacian_face_cut=False))
     cut, _ = build_avatar(subject, replace(tiny_config, laplacian_face_cut=True))
     V = plain.head.num_vertices
     hair = torch.zeros(1, V, 3)
@@ -442,6 +442,12 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
     (tmp_path / "config.json").write_text(json.dumps(newer))
     with pytest.raises(HeadforgeError, match="another headforge version .*hair_cards"):
         load_run(tmp_path)
+    from headforge.avatars.nha.trainer import NHAConfig
+
+    # A run written before laplacian_face_cut existed trained without it, whatever today's default.
+    assert NHAConfig().laplacian_face_cut is True
+    assert NHAConfig.from_saved({"seed": 3}, tmp_path).laplacian_face_cut is False
+    assert NHAConfig.from_saved({"laplacian_face_cut": True}, tmp_path).laplacian_face_cut is True
     with pytest.raises(HeadforgeError, match="not a headforge dataset"):
         fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])
