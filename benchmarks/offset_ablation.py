@@ -1,7 +1,7 @@
 """Which of a trained NHA avatar's offsets help its Table 1 geometry, and which hurt.
 
     python benchmarks/offset_ablation.py SUBJECT RUN [--variants all,none,no_face,no_face_border,no_face_interior]
-                                         [--rings 3] [--every 4]
+                                         [--rings 3] [--every 4] [--shapes learned,tracked]
 
 SUBJECT is one `headforge synth` subject folder (with gt/), RUN an NHA run folder fitted on it.
 The avatar is posed at the validation GT frames with its own fitted per-frame parameters (as
@@ -16,8 +16,11 @@ after training (geometry only; nothing is retrained):
   or ears (the hairline, temples and jaw line), the rest as trained;
 - ``no_face_interior``: none on the other face vertices.
 
-Prints one line per variant and, last, one JSON line with every figure. A variant that scores
-better than ``all`` points at offsets that the energies grew against the ground truth.
+``--shapes`` scores each variant with the identity shape the run learned (``learned``, the default),
+with the shape the tracker gave the dataset, which training started from (``tracked``), or both.
+
+Prints one line per variant and shape and, last, one JSON line with every figure. A variant that
+scores better than ``all`` points at offsets that the energies grew against the ground truth.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from headforge.errors import HeadforgeError
 from headforge.metrics.benchmark import evaluate_geometry, load_subject_gt
 
 VARIANTS = ("all", "none", "no_face", "no_face_border", "no_face_interior")
+SHAPES = ("learned", "tracked")
 SHOWN = ("normal_error_head_deg", "normal_error_face_deg", "hausdorff_full_mm", "hausdorff_face_mm",
          "hausdorff_full_outer_mm", "head_coverage")
 
@@ -50,6 +54,14 @@ def face_border(avatar, rings: int) -> torch.Tensor:
         grown[faces[reach[faces].any(1)].reshape(-1)] = True
         reach = grown
     return (avatar.face_vertices > 0) & reach
+
+
+def tracked_shape(run: Path, avatar) -> torch.Tensor:
+    """(1, n_shape) identity shape of the run's dataset as the tracker left it (training's start)."""
+    from safetensors.torch import load_file
+
+    dataset = Path(json.loads((run / "config.json").read_text())["dataset"])
+    return load_file(str(dataset / "tracking.safetensors"))["shape"].float()[:, : avatar.shape.shape[1]]
 
 
 def zeroed_vertices(avatar, variant: str, rings: int) -> torch.Tensor:
@@ -73,11 +85,15 @@ def main() -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--rings", type=int, default=3)
     parser.add_argument("--every", type=int, default=4)
+    parser.add_argument("--shapes", default="learned")
     args = parser.parse_args()
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    shapes = [v.strip() for v in args.shapes.split(",") if v.strip()]
     unknown = sorted(set(variants) - set(VARIANTS))
     if unknown:
         raise SystemExit(f"error: unknown variants {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
+    if not shapes or set(shapes) - set(SHAPES):
+        raise SystemExit(f"error: --shapes takes {' and/or '.join(SHAPES)}, got {args.shapes!r}")
     try:
         load_subject_gt(args.subject)
         avatar, _, _ = load_run(args.run)
@@ -85,19 +101,23 @@ def main() -> None:
         raise SystemExit(f"error: {err}") from None
     avatar.eval()
     trained_offsets = avatar.offsets
+    identity = {"learned": avatar.shape.detach().clone(), "tracked": tracked_shape(args.run, avatar)}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for variant in variants:
-            zero = zeroed_vertices(avatar, variant, args.rings)
-            keep = (~zero)[:, None].float()
-            avatar.offsets = lambda neck_pose, keep=keep: trained_offsets(neck_pose) * keep
-            folder = Path(tmp) / variant
-            folder.mkdir()
-            export_geometry(avatar, args.subject, folder / "geometry.safetensors")
-            mean = evaluate_geometry(folder, args.subject, every=args.every)["mean"]
-            results[variant] = {"zeroed_vertices": int(zero.sum())} | {k: round(float(mean[k]), 3) for k in SHOWN}
-            print(f"{variant:17s} zeroed {int(zero.sum()):5d} | "
-                  + "  ".join(f"{k} {results[variant][k]}" for k in SHOWN), flush=True)
+        for shape in shapes:
+            avatar.shape.data.copy_(identity[shape])
+            for variant in variants:
+                zero = zeroed_vertices(avatar, variant, args.rings)
+                keep = (~zero)[:, None].float()
+                avatar.offsets = lambda neck_pose, keep=keep: trained_offsets(neck_pose) * keep
+                name = variant if shapes == ["learned"] else f"{variant}/{shape}"
+                folder = Path(tmp) / name.replace("/", "_")
+                folder.mkdir()
+                export_geometry(avatar, args.subject, folder / "geometry.safetensors")
+                mean = evaluate_geometry(folder, args.subject, every=args.every)["mean"]
+                results[name] = {"zeroed_vertices": int(zero.sum())} | {k: round(float(mean[k]), 3) for k in SHOWN}
+                print(f"{name:25s} zeroed {int(zero.sum()):5d} | "
+                      + "  ".join(f"{k} {results[name][k]}" for k in SHOWN), flush=True)
     print(json.dumps({"subject": str(args.subject), "run": str(args.run), "every": args.every, "rings": args.rings,
                       "variants": results}))
 
