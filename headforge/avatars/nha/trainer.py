@@ -149,7 +149,8 @@ class NHAConfig:
     @classmethod
     def from_saved(cls, saved: dict, source: Path) -> "NHAConfig":
         """The config recorded in ``source``'s config.json; settings added since it was written
-        take their defaults (the behaviour the run had), settings this version lacks are refused."""
+        take the value the code then behaved as (their default, or ``LEGACY_SETTINGS`` where the
+        default changed later); settings this version lacks are refused."""
         unknown = sorted(set(saved) - {f.name for f in fields(cls)})
         if unknown:
             raise HeadforgeError(f"{source} was written by another headforge version (unknown settings {', '.join(unknown)})")
