@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from headforge.avatars.nha.model import build_template
+from headforge.avatars.nha.model import build_template, scalp_top_back
 from headforge.avatars.nha.trainer import load_run
 from headforge.errors import HeadforgeError
 from headforge.head import load_data
@@ -47,9 +47,9 @@ def region_labels(regions: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarra
         labels[idx[idx < V]] = name
     centre = rest.mean(0)
     scalp = labels == "scalp"
-    top, behind = rest[:, 1] > centre[1] + 0.06, rest[:, 2] <= centre[2]
-    labels[scalp & top & behind] = "scalp_top_back"
-    labels[scalp & ~top & (rest[:, 2] <= centre[2] - 0.03)] = "scalp_back"
+    top_back = scalp_top_back(rest, scalp)
+    labels[top_back] = "scalp_top_back"
+    labels[scalp & (rest[:, 1] <= centre[1] + 0.06) & (rest[:, 2] <= centre[2] - 0.03)] = "scalp_back"
     return labels
 
 

@@ -104,6 +104,15 @@ def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
     scalp = avatar.head.region("scalp")
     assert len(scalp) > 100 and torch.all(avatar.laplacian_weight[scalp] == 0.37)
     assert avatar.laplacian_weight[avatar.head.region("face")].min() == 20.0
+    # the top-back of the scalp (high and behind) can be softer than the rest of it
+    softer, _ = build_avatar(synth_bench[0] / "subject_00", replace(tiny_config, laplacian_scalp=0.5,
+                                                                     laplacian_top_back_factor=0.2))
+    w = softer.laplacian_weight[scalp]
+    top_back = torch.isclose(w, torch.tensor(0.1))
+    assert 0.1 * len(scalp) < top_back.sum() < 0.6 * len(scalp) and torch.all(w[~top_back] == 0.5)
+    rest = softer.head.v_template[scalp]
+    assert rest[top_back, 1].min() > rest[~top_back, 1].mean()  # high on the head ...
+    assert rest[top_back, 2].max() <= softer.head.v_template[:, 2].mean()  # ... and behind its centre
 
 
 def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_bench, tiny_config):

@@ -42,6 +42,14 @@ def build_template(data: HeadModelData, subdivide: bool = True) -> HeadModelData
     return data
 
 
+def scalp_top_back(rest, scalp):
+    """(V,) bool: the scalp's top-back, which a frontal clip rarely shows on its outline: ``scalp``
+    vertices more than 6 cm above the centroid of ``rest`` and behind it. ``rest``: (V, 3) template
+    in metres (+y up, +z forward); ``scalp``: (V,) bool. numpy or torch in, the same out."""
+    centre = rest.mean(0)
+    return scalp & (rest[:, 1] > centre[1] + 0.06) & (rest[:, 2] <= centre[2])
+
+
 def face_oval_vertices(data: HeadModelData) -> np.ndarray:
     """(V,) bool: the template vertices inside MediaPipe's face-oval loop (FACE_OVAL_LOOP) --
     the face region that the detected oval outlines in an image. Inside = within the loop's
@@ -95,6 +103,9 @@ class NeuralHeadAvatar(nn.Module):
         lap = torch.full((V,), 1.0)
         for name, w in (LAPLACIAN_WEIGHTS | {"scalp": config.laplacian_scalp}).items():
             lap[region(name)] = w
+        scalp = torch.zeros(V, dtype=torch.bool)
+        scalp[region("scalp")] = True
+        lap[scalp_top_back(rest, scalp)] *= config.laplacian_top_back_factor
         self.register_buffer("laplacian_weight", lap)
         # With laplacian_face_cut the face's Laplacian averages over face (and ear, neck) neighbours
         # only: the stiff face (weight 20) is then not dragged along by hair grown on the free scalp.
