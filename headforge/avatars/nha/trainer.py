@@ -84,10 +84,11 @@ class NHAConfig:
     w_ssim: float = 0.2
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
     laplacian_scalp: float = 0.1  # the scalp's region weight (the face's is 20); README, Table 1
-    # section: 1.0 is worse on the synthetic subjects; with the face cut at 2000 it. 0.02 takes curly 3.17 ->
-    # 2.89 mm but costs bob 1.2 deg, so the scalp keeps 0.1
+    # section: 1.0 is worse on the synthetic subjects; with the face cut at 2000 it. 0.02 takes curly 3.21 ->
+    # 2.94 mm but costs bob 2.3 deg, so the scalp keeps 0.1
     laplacian_top_back_factor: float = 1.0  # times laplacian_scalp on the scalp's top-back (model.scalp_top_back),
-    # which no outline sees in a frontal clip; README, Table 1 section
+    # which no outline sees in a frontal clip; README, Table 1 section: 0.2 still costs bob 2.0 deg and
+    # gives curly only 0.10 mm, so 1.0
     laplacian_face_cut: bool = True  # the face's Laplacian ignores scalp neighbours (model.py), so hair grown on
     # the scalp does not drag the face border up; README, Table 1 section: 2000 it. mean 17.48 -> 16.29 deg
     w_offset_face: float = 0.01  # squared face offsets in mm^2
