@@ -49,7 +49,7 @@ def region_labels(regions: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarra
     scalp = labels == "scalp"
     top_back = scalp_top_back(rest, scalp)
     labels[top_back] = "scalp_top_back"
-    labels[scalp & (rest[:, 1] <= centre[1] + 0.06) & (rest[:, 2] <= centre[2] - 0.03)] = "scalp_back"
+    labels[scalp & ~top_back & (rest[:, 2] <= centre[2] - 0.03)] = "scalp_back"  # behind by 3 cm, lower
     return labels
 
 
