@@ -486,6 +486,10 @@ def test_config_overrides_parse_as_the_field_types():
     for assignment in ("tex_grid=256", "lr_grid=0.02", "subdivide=true", "normal_channels=32,32,16"):
         config.override(assignment)
     assert (config.tex_grid, config.lr_grid, config.subdivide, config.normal_channels) == (256, 0.02, True, (32, 32, 16))
+    for negative in ("w_rgb=-1", "laplacian_top_back_factor=-0.2"):  # a negative weight would reward the error
+        with pytest.raises(HeadforgeError, match=">= 0"):
+            config.override(negative)
+    assert config.w_rgb == 1.0
 
 
 def test_device_choice_is_checked(tmp_path, monkeypatch):

@@ -148,6 +148,8 @@ class NHAConfig:
                 value = type(current)(text)
         except ValueError:
             raise HeadforgeError(f"--set {name}: {text!r} is not a {type(current).__name__}") from None
+        if name.startswith(("w_", "laplacian_")) and isinstance(value, float) and value < 0:
+            raise HeadforgeError(f"--set {name}: an energy weight must be >= 0, got {value}")  # < 0 rewards the error
         setattr(self, name, value)
 
     @classmethod
