@@ -4,7 +4,10 @@
     python benchmarks/table1.py BENCH [--nha RUN_DIR_PREFIX] [--every 2]
 
 RUN_DIR_PREFIX + "subject_00" etc. are the NHA run folders. Prints a Markdown table and, last,
-one JSON line with every figure.
+one JSON line with every figure. With NHA runs it adds the normal error of both methods on the
+pixels both cover (``paired_*``; `headforge.metrics.benchmark.paired_normal_error`): the
+protocol's own normal error scores each method on its own coverage, so the bald tracked model is
+not charged for the hair it leaves uncovered.
 """
 
 from __future__ import annotations
@@ -13,8 +16,9 @@ import argparse
 import json
 from pathlib import Path
 
-from headforge.metrics.benchmark import evaluate_geometry
+from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error
 
+PAIRED = ("normal_error_head_deg", "normal_error_face_deg")
 KEYS = ("normal_error_head_deg", "normal_error_face_deg", "hausdorff_full_mm", "hausdorff_face_mm",
         "hausdorff_full_camera_mm", "normal_consistency", "hausdorff_full_outer_mm", "head_coverage")
 
@@ -35,12 +39,18 @@ def main() -> None:
             r = evaluate_geometry(pred, subject, every=args.every)
             rows.setdefault(method, {})[subject.name] = {k: r["mean"][k] for k in KEYS} | {
                 "frames": r["frames"], "hair": r["hair"]}
+        if "NHA (headforge)" in methods:
+            pair = paired_normal_error(methods["NHA (headforge)"], subject, subject, every=args.every)["mean"]
+            for method, prefix in (("NHA (headforge)", ""), ("tracked head model", "reference_")):
+                rows[method][subject.name] |= {f"paired_{k}": pair[prefix + k] for k in PAIRED}
+                rows[method][subject.name]["paired_common_coverage"] = pair["common_coverage"]
     names = [s.name for s in subjects]
     print("| metric | method | " + " | ".join(f"{n} ({rows['tracked head model'][n]['hair']})" for n in names) + " |")
     print("| --- | --- |" + " --- |" * len(names))
-    for k in KEYS:
+    for k in KEYS + tuple(f"paired_{k}" for k in PAIRED) + ("paired_common_coverage",):
         for method, per in rows.items():
-            print(f"| {k} | {method} | " + " | ".join(f"{per[n][k]:.3f}" if n in per else "–" for n in names) + " |")
+            print(f"| {k} | {method} | " + " | ".join(f"{per[n][k]:.3f}" if k in per.get(n, {}) else "–"
+                                                      for n in names) + " |")
     print(json.dumps(rows))
 
 

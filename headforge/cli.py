@@ -315,17 +315,24 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
              masks: Optional[Path] = typer.Option(None, help="folder of masks (same names) for masked metrics"),
              split: str = typer.Option("val", help="geometry mode: val, train or all ground-truth frames"),
              every: int = typer.Option(1, help="geometry mode: use every N-th ground-truth frame"),
+             reference: Optional[Path] = typer.Option(
+                 None, help="geometry mode: another prediction (e.g. the tracked dataset); adds both normal "
+                            "errors on the pixels both cover (paired_*)"),
              output: Path = typer.Option(Path("eval"), "-o", "--output", help="report folder"),
              as_json: bool = typer.Option(False, "--json", help="print the mean metrics as one JSON object")) -> None:
     """Image metrics (L1, PSNR, SSIM, MS-SSIM, CPBD; LPIPS when its weights exist) between two
     folders; or, when GT is a synth subject, geometry metrics (normal angle error, one-sided
-    Hausdorff full head / face in mm, normal consistency) of a tracked dataset or exported geometry."""
+    Hausdorff full head / face in mm, normal consistency) of a tracked dataset or exported geometry;
+    with --reference, also the normal errors of both predictions on the pixels both cover."""
     if (gt / "gt" / "geometry.safetensors").is_file():
-        from headforge.metrics.benchmark import evaluate_geometry, write_geometry_report
+        from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error, write_geometry_report
 
         if every < 1:
             raise HeadforgeError(f"--every must be >= 1, got {every}")
         result = evaluate_geometry(pred, gt, split=split, every=every)
+        if reference is not None:
+            pair = paired_normal_error(pred, reference, gt, split=split, every=every)["mean"]
+            result["mean"] |= {f"paired_{k}": v for k, v in pair.items()}
         write_geometry_report(result, output)
         summary = {"frames": result["frames"], "hair": result["hair"], **result["mean"]}
     else:

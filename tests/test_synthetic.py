@@ -123,6 +123,51 @@ def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
     assert not np.array_equal(drawn[R:, :R], drawn[R:, 2 * R:3 * R])  # the views really turn
 
 
+def test_paired_normal_error_scores_two_predictions_on_the_pixels_both_cover(bench, open_head_data, tmp_path):
+    """The tracked head with everything but its face cut away, against the whole tracked head:
+    on their common pixels both show the same surface, so their errors agree; the common pixels
+    are the face-only prediction's coverage, and its own-coverage error is what the pair reports."""
+    from safetensors.numpy import save_file
+
+    from headforge.metrics.benchmark import (evaluate_geometry, load_subject_gt, paired_normal_error,
+                                             split_rows, tracked_geometry)
+
+    out, _, _ = bench
+    subject = out / "subject_00"
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", 1)
+    whole = tracked_geometry(subject, gt["frames"][rows])
+    face_only = tmp_path / "face_only"
+    face_only.mkdir()
+    save_file({"frames": whole.frames, "vertices": whole.vertices.astype(np.float32),
+               "faces": whole.faces[whole.face_vertices[whole.faces].all(1)].astype(np.int64),
+               "face_vertices": whole.face_vertices, "head_vertices": whole.head_vertices},
+              str(face_only / "geometry.safetensors"))
+    pair = paired_normal_error(face_only, subject, subject)
+    own = evaluate_geometry(face_only, subject, samples=500)["mean"]
+    whole_own = evaluate_geometry(subject, subject, samples=500)["mean"]
+    m = pair["mean"]
+    assert pair["frames"] == len(rows)
+    assert abs(m["normal_error_head_deg"] - m["reference_normal_error_head_deg"]) < 0.05
+    assert abs(m["normal_error_face_deg"] - m["reference_normal_error_face_deg"]) < 0.05
+    assert abs(m["normal_error_head_deg"] - own["normal_error_head_deg"]) < 0.05
+    assert abs(m["common_coverage"] - own["head_coverage"]) < 1e-6
+    assert m["common_coverage"] < whole_own["head_coverage"] - 0.1  # the face alone covers far less
+    # the reference's own error (on its own, larger coverage) is not what the pair reports for it
+    assert abs(m["reference_normal_error_head_deg"] - whole_own["normal_error_head_deg"]) > 0.1
+    # headforge eval --reference adds the pair to the report
+    from typer.testing import CliRunner
+
+    from headforge.cli import app
+
+    res = CliRunner().invoke(app, ["eval", str(face_only), str(subject), "--reference", str(subject), "--json",
+                                   "-o", str(tmp_path / "eval")])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.output.strip().splitlines()[-1])
+    assert abs(summary["paired_reference_normal_error_head_deg"] - m["reference_normal_error_head_deg"]) < 1e-6
+    assert "paired_common_coverage" in json.loads((tmp_path / "eval" / "metrics.json").read_text())["mean"]
+
+
 def test_outer_surface_drops_the_scalp_under_the_hair_and_the_hair_shell_inside_the_skin():
     """A unit-sphere head whose top is covered by a closed hair volume from r = 0.98 (under the
     skin) to r = 1.2 above z = 0.31: only the outer hair cap, its rim and the bare lower skin are outer."""

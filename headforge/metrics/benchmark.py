@@ -19,6 +19,9 @@ For every ground-truth frame of the chosen split (``gt/geometry.safetensors`` li
   the fraction of the GT full-head pixels the prediction covers (the normal error counts only
   covered pixels, so a prediction that leaves the hair uncovered is not charged for it).
 
+:func:`paired_normal_error` scores two predictions (an avatar and the tracked model) on the
+pixels both cover: the like-for-like comparison the per-prediction normal error is not.
+
 A prediction is either a tracked dataset (the head model posed with ``tracking.safetensors``;
 the baseline row) or a folder with ``geometry.safetensors`` holding camera-space
 ``vertices`` (N, V, 3) for ``frames`` (N,), ``faces`` (F, 3) and bool vertex masks
@@ -212,11 +215,9 @@ def _faces_in(faces: np.ndarray, vertex_mask: np.ndarray) -> np.ndarray:
     return vertex_mask[faces].all(1)
 
 
-def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val", samples: int = 10_000,
-                      every: int = 1) -> dict:
-    """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""
-    subject, pred = Path(subject), Path(pred)
-    gt, info = load_subject_gt(subject)
+def split_rows(gt: dict, info: dict, subject: Path, split: str, every: int) -> tuple[np.ndarray, int]:
+    """The rows of ``gt`` (every ``every``-th GT frame of ``split``: val, train or all) and how
+    many GT frames the split has."""
     train = info["train_frames"]
     split_mask = {"val": gt["frames"] >= train, "train": gt["frames"] < train, "all": np.ones(len(gt["frames"]), bool)}
     if split not in split_mask:
@@ -224,6 +225,57 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     rows = np.nonzero(split_mask[split])[0][::every]
     if len(rows) == 0:
         raise HeadforgeError(f"{subject} has no ground-truth frames in split {split!r}")
+    return rows, int(split_mask[split].sum())
+
+
+def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | Path, split: str = "val",
+                        every: int = 1) -> dict:
+    """Normal angle error (degrees) of ``pred`` and of ``reference`` (each a tracked dataset or
+    exported geometry, as for :func:`evaluate_geometry`) on the same pixels: the GT full-head
+    (face) pixels that *both* predictions cover, per GT frame of ``split``, then the mean over
+    frames. :func:`evaluate_geometry` charges each prediction only on the pixels it covers
+    itself, so a bald head model that leaves the hair uncovered is scored on the skin alone while
+    an avatar with hair is scored on the hair too; this is the like-for-like comparison.
+
+    Returns ``{"frames": N, "mean": {...}, "per_frame": [...]}`` with ``normal_error_head_deg``,
+    ``normal_error_face_deg``, ``reference_normal_error_head_deg``,
+    ``reference_normal_error_face_deg`` and ``common_coverage`` (fraction of the GT full-head
+    pixels both cover)."""
+    subject = Path(subject)
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, split, every)
+    frames = gt["frames"][rows]
+    sources = {"": Path(pred), "reference_": Path(reference)}
+    predictions = {key: load_prediction(path, frames) for key, path in sources.items()}
+    lookups = {key: prediction_rows(predictions[key], frames, path) for key, path in sources.items()}
+    K, res = np.asarray(info["intrinsics"]), int(info["resolution"])
+    per_frame = []
+    for j, f in enumerate(frames):
+        gt_n, labels = read_gt_maps(subject, int(f), res)
+        gt_head = np.isin(labels, np.array(info["head_labels"]))
+        normals = {key: render_normals(p.vertices[lookups[key][j]], p.faces, K, res) for key, p in predictions.items()}
+        common = gt_head & np.logical_and.reduce([np.linalg.norm(n, axis=-1) > 0.5 for n in normals.values()])
+        face = common & (labels == info["labels"]["face"])
+        if not face.any():
+            raise HeadforgeError(f"frame {int(f)}: the two predictions cover none of the ground-truth face in common")
+        row = {"frame": int(f), "common_coverage": float(common.sum() / gt_head.sum())}
+        gn = torch.from_numpy(gt_n.copy())[None]
+        for key, n in normals.items():
+            pn = torch.from_numpy(n)[None]
+            row[f"{key}normal_error_head_deg"] = float(normal_angle_error(pn, gn, torch.from_numpy(common)[None])[0])
+            row[f"{key}normal_error_face_deg"] = float(normal_angle_error(pn, gn, torch.from_numpy(face)[None])[0])
+        per_frame.append(row)
+    keys = [k for k in per_frame[0] if k != "frame"]
+    return {"frames": len(per_frame), "mean": {k: float(np.mean([r[k] for r in per_frame])) for k in keys},
+            "per_frame": per_frame}
+
+
+def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val", samples: int = 10_000,
+                      every: int = 1) -> dict:
+    """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""
+    subject, pred = Path(subject), Path(pred)
+    gt, info = load_subject_gt(subject)
+    rows, available = split_rows(gt, info, subject, split, every)
     frames = gt["frames"][rows]
     prediction = load_prediction(pred, frames)
     pred_rows = prediction_rows(prediction, frames, pred)
@@ -278,7 +330,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     keys = [k for k in per_frame[0] if k != "frame"]
     mean = {k: float(np.mean([r[k] for r in per_frame])) for k in keys}
     return {"prediction": prediction.source, "subject": str(subject), "split": split, "frames": len(per_frame),
-            "frames_available": int(split_mask[split].sum()), "mean": mean, "per_frame": per_frame,
+            "frames_available": available, "mean": mean, "per_frame": per_frame,
             "error_maps": error_maps, "views": views, "hair": info["subject"]["hair_style"]}
 
 
