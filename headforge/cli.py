@@ -439,7 +439,7 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
     write_png(tmp / "turntable.png", first["frame"])
     metrics["fit_grace_hopper_median_px"] = round(fit_photo.median_px, 3)
     if video is None:
-        from headforge.metrics.benchmark import evaluate_geometry, write_geometry_report
+        from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error, write_geometry_report
 
         _progress("4/4 evaluating geometry against the ground truth: tracked head model vs avatar")
         for name, pred in (("tracked", dataset), ("nha", tmp / "nha")):
@@ -448,6 +448,9 @@ def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", h
             for k in ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm", "hausdorff_full_outer_mm",
                       "head_coverage"):
                 metrics[f"{name}_{k}"] = round(result["mean"][k], 3)
+        pair = paired_normal_error(tmp / "nha", dataset, dataset)["mean"]  # both on the pixels both cover
+        for name, prefix in (("tracked", "reference_"), ("nha", "")):
+            metrics[f"{name}_paired_normal_error_head_deg"] = round(pair[prefix + "normal_error_head_deg"], 3)
     metrics["demo_minutes"] = round((time.perf_counter() - start_all) / 60, 2)
     (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
     table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
