@@ -43,7 +43,7 @@ def main() -> None:
             pair = paired_normal_error(methods["NHA (headforge)"], subject, subject, every=args.every)["mean"]
             for method, prefix in (("NHA (headforge)", ""), ("tracked head model", "reference_")):
                 rows[method][subject.name] |= {f"paired_{k}": pair[prefix + k] for k in PAIRED}
-                rows[method][subject.name]["paired_common_coverage"] = pair["common_coverage"]
+            rows["NHA (headforge)"][subject.name]["paired_common_coverage"] = pair["common_coverage"]  # one per pair
     names = [s.name for s in subjects]
     print("| metric | method | " + " | ".join(f"{n} ({rows['tracked head model'][n]['hair']})" for n in names) + " |")
     print("| --- | --- |" + " --- |" * len(names))

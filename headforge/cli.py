@@ -329,15 +329,17 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
 
         if every < 1:
             raise HeadforgeError(f"--every must be >= 1, got {every}")
+        # the pair first: it is the quick part, so a wrong --reference fails before the long one
+        pair = {} if reference is None else paired_normal_error(pred, reference, gt, split=split, every=every)["mean"]
         result = evaluate_geometry(pred, gt, split=split, every=every)
-        if reference is not None:
-            pair = paired_normal_error(pred, reference, gt, split=split, every=every)["mean"]
-            result["mean"] |= {f"paired_{k}": v for k, v in pair.items()}
+        result["mean"] |= {f"paired_{k}": v for k, v in pair.items()}
         write_geometry_report(result, output)
         summary = {"frames": result["frames"], "hair": result["hair"], **result["mean"]}
     else:
         from headforge.metrics.evaluate import evaluate_folders, write_report
 
+        if reference is not None:
+            raise HeadforgeError(f"--reference needs a headforge synth subject as GT (geometry mode); {gt} has no gt/")
         result = evaluate_folders(pred, gt, masks)
         write_report(result, output)
         summary = {"images": result["images"], **result["mean"]}

@@ -166,6 +166,14 @@ def test_paired_normal_error_scores_two_predictions_on_the_pixels_both_cover(ben
     summary = json.loads(res.output.strip().splitlines()[-1])
     assert abs(summary["paired_reference_normal_error_head_deg"] - m["reference_normal_error_head_deg"]) < 1e-6
     assert "paired_common_coverage" in json.loads((tmp_path / "eval" / "metrics.json").read_text())["mean"]
+    # a --reference that is no prediction, or one for image folders, is refused before any report is written
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for gt, message in ((subject, "neither tracking.safetensors nor geometry.safetensors"), (empty, "--reference needs")):
+        res = CliRunner().invoke(app, ["eval", str(face_only), str(gt), "--reference", str(empty),
+                                       "-o", str(tmp_path / "refused")])
+        assert res.exit_code != 0 and message in str(res.exception)
+        assert not (tmp_path / "refused").exists()
 
 
 def test_outer_surface_drops_the_scalp_under_the_hair_and_the_hair_shell_inside_the_skin():

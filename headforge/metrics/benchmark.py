@@ -215,6 +215,19 @@ def _faces_in(faces: np.ndarray, vertex_mask: np.ndarray) -> np.ndarray:
     return vertex_mask[faces].all(1)
 
 
+def _rendered(normals: np.ndarray) -> np.ndarray:
+    """(R, R) bool: the pixels a normal map from :func:`render_normals` covers."""
+    return np.linalg.norm(normals, axis=-1) > 0.5
+
+
+def _normal_errors(pred_n: np.ndarray, gt_n: np.ndarray, head_px: np.ndarray, face_px: np.ndarray) -> tuple[float, float]:
+    """Mean normal angle error (degrees) of a rendered (R, R, 3) map against the GT map over the
+    (R, R) bool ``head_px`` and ``face_px`` masks, in that order."""
+    pn, gn = torch.from_numpy(pred_n)[None], torch.from_numpy(gt_n.copy())[None]
+    head, face = (float(normal_angle_error(pn, gn, torch.from_numpy(m)[None])[0]) for m in (head_px, face_px))
+    return head, face
+
+
 def split_rows(gt: dict, info: dict, subject: Path, split: str, every: int) -> tuple[np.ndarray, int]:
     """The rows of ``gt`` (every ``every``-th GT frame of ``split``: val, train or all) and how
     many GT frames the split has."""
@@ -254,16 +267,13 @@ def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | 
         gt_n, labels = read_gt_maps(subject, int(f), res)
         gt_head = np.isin(labels, np.array(info["head_labels"]))
         normals = {key: render_normals(p.vertices[lookups[key][j]], p.faces, K, res) for key, p in predictions.items()}
-        common = gt_head & np.logical_and.reduce([np.linalg.norm(n, axis=-1) > 0.5 for n in normals.values()])
+        common = gt_head & np.logical_and.reduce([_rendered(n) for n in normals.values()])
         face = common & (labels == info["labels"]["face"])
         if not face.any():
             raise HeadforgeError(f"frame {int(f)}: the two predictions cover none of the ground-truth face in common")
         row = {"frame": int(f), "common_coverage": float(common.sum() / gt_head.sum())}
-        gn = torch.from_numpy(gt_n.copy())[None]
         for key, n in normals.items():
-            pn = torch.from_numpy(n)[None]
-            row[f"{key}normal_error_head_deg"] = float(normal_angle_error(pn, gn, torch.from_numpy(common)[None])[0])
-            row[f"{key}normal_error_face_deg"] = float(normal_angle_error(pn, gn, torch.from_numpy(face)[None])[0])
+            row[f"{key}normal_error_head_deg"], row[f"{key}normal_error_face_deg"] = _normal_errors(n, gt_n, common, face)
         per_frame.append(row)
     keys = [k for k in per_frame[0] if k != "frame"]
     return {"frames": len(per_frame), "mean": {k: float(np.mean([r[k] for r in per_frame])) for k in keys},
@@ -292,15 +302,13 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         verts = prediction.vertices[i]
         gt_n, labels = read_gt_maps(subject, int(f), res)
         pred_n = render_normals(verts, prediction.faces, K, res)
-        covered = (np.linalg.norm(pred_n, axis=-1) > 0.5) & (labels > 0)
+        covered = _rendered(pred_n) & (labels > 0)
         face_px = covered & (labels == labels_face)
         gt_head_px = np.isin(labels, head_labels)
         head_px = covered & gt_head_px
         if not face_px.any() or not head_px.any():
             raise HeadforgeError(f"frame {int(f)}: the prediction covers none of the ground-truth face")
-        pn, gn = torch.from_numpy(pred_n)[None], torch.from_numpy(gt_n.copy())[None]
-        nae_face = float(normal_angle_error(pn, gn, torch.from_numpy(face_px)[None])[0])
-        nae_head = float(normal_angle_error(pn, gn, torch.from_numpy(head_px)[None])[0])
+        nae_head, nae_face = _normal_errors(pred_n, gt_n, head_px, face_px)
         gv, gf = gt["vertices"][row], gt["faces"]
         cam_full = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
         cam_face = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
