@@ -143,6 +143,43 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     bump[0, ~inside] = 0.0
     assert torch.allclose(plain.laplacian_term(bump), cut.laplacian_term(bump), rtol=1e-5, atol=1e-7)
 
+
+def test_the_shell_laplacian_leaves_an_even_hair_shell_free_and_the_rest_as_before(synth_bench, tiny_config):
+    """With ``laplacian_scalp_shell`` hair of even thickness along the template normal costs the
+    scalp's inner vertices nothing (the vector Laplacian charges it: the normals turn); offsets
+    off the scalp score as without it."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.trainer import build_avatar
+    from headforge.head.topology import directed_edges
+
+    subject = synth_bench[0] / "subject_00"
+    plain, _ = build_avatar(subject, replace(tiny_config, laplacian_scalp_shell=False))
+    shell, _ = build_avatar(subject, replace(tiny_config, laplacian_scalp_shell=True))
+    V = plain.head.num_vertices
+    scalp = torch.zeros(V, dtype=torch.bool)
+    scalp[plain.head.region("scalp")] = True
+    assert torch.equal(shell.shell_vertices, scalp) and not plain.shell_vertices.any()
+    i, j = directed_edges(plain.head.faces, V)
+    inner = scalp.clone()
+    inner[i[scalp[i] & ~scalp[j]]] = False  # scalp vertices with a neighbour off the scalp
+    assert inner.sum() > 20
+    hair = torch.zeros(1, V, 3)
+    hair[0, scalp] = 5.0 * shell.rest_normals[scalp]  # mm, along the template normal
+    for avatar in (plain, shell):
+        avatar.laplacian_weight.copy_(inner.float())
+    assert plain.laplacian_term(hair) > 1e-3
+    assert shell.laplacian_term(hair) < 1e-9
+    thicker = hair.clone()
+    thicker[0, scalp] *= 1.0 + (shell.rest_normals[scalp, 1:2] > 0)  # twice as thick on the upper half
+    assert shell.laplacian_term(thicker) > 1e-3  # uneven thickness is still charged
+    away = torch.randn(1, V, 3)
+    away[0, scalp] = 0.0
+    off_scalp = (~scalp).float()
+    for avatar in (plain, shell):
+        avatar.laplacian_weight.copy_(off_scalp)
+    assert torch.allclose(plain.laplacian_term(away), shell.laplacian_term(away), rtol=1e-6)
+
 def test_offsets_on_the_neck_rows_equal_the_full_network_evaluation(synth_bench, tiny_config):
     """The conditioned G runs on the neck-fade vertices only; values and neck-pose gradients are
     those of NHA's blend over every vertex (the pure-PyTorch reference below)."""

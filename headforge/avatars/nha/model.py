@@ -107,6 +107,11 @@ class NeuralHeadAvatar(nn.Module):
         scalp[region("scalp")] = True
         lap[scalp_top_back(rest, scalp)] *= config.laplacian_top_back_factor
         self.register_buffer("laplacian_weight", lap)
+        # With laplacian_scalp_shell the scalp's Laplacian acts on the hair's thickness along the
+        # template normal (and on the tangential rest): an even shell of hair costs nothing there,
+        # so the thickness the outline measures on the top and sides carries over to the unseen back.
+        self.register_buffer("shell_vertices", scalp & config.laplacian_scalp_shell, persistent=False)  # derived
+        self.register_buffer("rest_normals", vertex_normals(rest[None], faces)[0], persistent=False)  # derived
         # With laplacian_face_cut the face's Laplacian averages over face (and ear, neck) neighbours
         # only: the stiff face (weight 20) is then not dragged along by hair grown on the free scalp.
         self.register_buffer("laplacian_edges", _edges_without_face_to_scalp(faces, region("face"), region("scalp"), V)
@@ -273,15 +278,25 @@ class NeuralHeadAvatar(nn.Module):
         """Region-weighted squared uniform Laplacian of the offsets (= the Laplacian of the offset
         mesh minus that of the template, NHA's E_reg,lapl). Squared rather than NHA's L1: an L1
         subgradient keeps its full size on an already smooth face and, through the shared
-        network, drowned the silhouette signal that grows hair."""
+        network, drowned the silhouette signal that grows hair. On ``shell_vertices`` the
+        Laplacian is that of (tangential offset, thickness along the template normal) instead."""
+        energy = self._umbrella(offsets).pow(2).sum(-1)
+        if bool(self.shell_vertices.any()):
+            thickness = (offsets * self.rest_normals).sum(-1, keepdim=True)
+            split = torch.cat([offsets - thickness * self.rest_normals, thickness], -1)  # (B, V, 4)
+            energy = torch.where(self.shell_vertices, self._umbrella(split).pow(2).sum(-1), energy)
+        return (energy * self.laplacian_weight).mean()
+
+    def _umbrella(self, values: torch.Tensor) -> torch.Tensor:
+        """(B, V, C): mean of each vertex's neighbours minus the vertex; with the face cut the
+        face's neighbours exclude the scalp (``laplacian_edges``)."""
         if len(self.laplacian_edges) == 0:  # the shipped path, kept bit-identical to the measured runs
-            smoothed = laplacian_smooth(offsets, self.head.faces, 1.0, iterations=1)
-            return ((smoothed - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
+            return laplacian_smooth(values, self.head.faces, 1.0, iterations=1) - values
         i, j = self.laplacian_edges.T
         V = self.head.num_vertices
-        degree = torch.zeros(V, dtype=offsets.dtype, device=offsets.device).index_add_(0, i, torch.ones_like(i, dtype=offsets.dtype))
-        mean = torch.zeros_like(offsets).index_add_(-2, i, offsets.index_select(-2, j)) / degree.clamp(min=1)[:, None]
-        return ((mean - offsets).pow(2).sum(-1) * self.laplacian_weight).mean()
+        degree = torch.zeros(V, dtype=values.dtype, device=values.device).index_add_(0, i, torch.ones_like(i, dtype=values.dtype))
+        mean = torch.zeros_like(values).index_add_(-2, i, values.index_select(-2, j)) / degree.clamp(min=1)[:, None]
+        return mean - values
 
     def edge_term(self, vertices: torch.Tensor) -> torch.Tensor:
         """NHA's scalp edge-length term, relative to the template: scalp edges stretched beyond
