@@ -109,8 +109,9 @@ class NeuralHeadAvatar(nn.Module):
         self.register_buffer("laplacian_weight", lap)
         # With laplacian_scalp_shell the scalp's Laplacian acts on the hair's thickness along the
         # template normal (and on the tangential rest): an even shell of hair costs nothing there,
-        # so the thickness the outline measures on the top and sides carries over to the unseen back.
-        self.register_buffer("shell_vertices", scalp & config.laplacian_scalp_shell, persistent=False)  # derived
+        # so the thickness the outline measures on the top and sides may carry over to the unseen back.
+        self.shell_laplacian = bool(config.laplacian_scalp_shell)  # a Python flag: no device sync per step
+        self.register_buffer("shell_vertices", scalp & self.shell_laplacian, persistent=False)  # derived
         self.register_buffer("rest_normals", vertex_normals(rest[None], faces)[0], persistent=False)  # derived
         # With laplacian_face_cut the face's Laplacian averages over face (and ear, neck) neighbours
         # only: the stiff face (weight 20) is then not dragged along by hair grown on the free scalp.
@@ -281,7 +282,7 @@ class NeuralHeadAvatar(nn.Module):
         network, drowned the silhouette signal that grows hair. On ``shell_vertices`` the
         Laplacian is that of (tangential offset, thickness along the template normal) instead."""
         energy = self._umbrella(offsets).pow(2).sum(-1)
-        if bool(self.shell_vertices.any()):
+        if self.shell_laplacian:
             thickness = (offsets * self.rest_normals).sum(-1, keepdim=True)
             split = torch.cat([offsets - thickness * self.rest_normals, thickness], -1)  # (B, V, 4)
             energy = torch.where(self.shell_vertices, self._umbrella(split).pow(2).sum(-1), energy)

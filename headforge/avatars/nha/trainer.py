@@ -92,7 +92,8 @@ class NHAConfig:
     laplacian_face_cut: bool = True  # the face's Laplacian ignores scalp neighbours (model.py), so hair grown on
     # the scalp does not drag the face border up; README, Table 1 section: 2000 it. mean 17.48 -> 16.29 deg
     laplacian_scalp_shell: bool = False  # the scalp's Laplacian on the hair's thickness along the template
-    # normal instead of the offset vector (model.laplacian_term): an even hair shell costs nothing
+    # normal instead of the offset vector (model.laplacian_term): an even hair shell costs nothing; README,
+    # Table 1 section: worse on curly (3.21 -> 3.54 mm) and bob (22.56 -> 25.33 deg), so off
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
     w_edge: float = 10.0
