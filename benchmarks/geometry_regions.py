@@ -86,7 +86,7 @@ def report() -> None:
 
     _, config, _ = load_run(args.run)
     base = load_data("open-head", None)
-    nha_template = build_template(base, config.subdivide)
+    nha_template = build_template(base, config.subdivide, config.remove_lower_neck)
     predictions = {
         "tracked": (tracked_geometry(args.subject, frames),
                     region_labels(base.regions, np.asarray(base.v_template))),

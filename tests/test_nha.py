@@ -144,6 +144,25 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     assert torch.allclose(plain.laplacian_term(bump), cut.laplacian_term(bump), rtol=1e-5, atol=1e-7)
 
 
+def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_lowers_the_neck_ring(synth_bench, tiny_config):
+    """``remove_lower_neck=False`` trains on the whole head model (App. A.1's cut is the default):
+    no vertex is dropped, and the open ring the loss area is cut at lies lower on the neck."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.trainer import build_avatar
+    from headforge.head import load_data
+
+    subject = synth_bench[0] / "subject_00"
+    cut, _ = build_avatar(subject, replace(tiny_config, remove_lower_neck=True))
+    kept, _ = build_avatar(subject, replace(tiny_config, remove_lower_neck=False))
+    base = load_data("open-head", None)
+    lower = len(base.regions["lower_neck"])
+    assert lower > 0
+    assert kept.head.num_vertices == cut.head.num_vertices + lower == len(base.v_template)
+    ring_y = lambda a: a.head.v_template[a.neck_ring, 1].mean()  # noqa: E731 (+y up)
+    assert ring_y(kept) < ring_y(cut) - 0.005
+
+
 def test_the_shell_laplacian_leaves_an_even_hair_shell_free_and_the_rest_as_before(synth_bench, tiny_config):
     """With ``laplacian_scalp_shell`` hair of even thickness along the template normal costs the
     scalp's inner vertices nothing (the vector Laplacian charges it: the normals turn); offsets

@@ -33,11 +33,11 @@ LAPLACIAN_WEIGHTS = {"neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyel
                      "eyeballs": 50.0, "mouth_interior": 20.0}
 
 
-def build_template(data: HeadModelData, subdivide: bool = True) -> HeadModelData:
-    """NHA's template (App. A.1): 4-way subdivision, lower neck removed."""
+def build_template(data: HeadModelData, subdivide: bool = True, remove_lower_neck: bool = True) -> HeadModelData:
+    """NHA's template (App. A.1): 4-way subdivision, lower neck removed (``remove_lower_neck``)."""
     if subdivide:
         data = subdivide_head(data)
-    if "lower_neck" in data.regions:
+    if remove_lower_neck and "lower_neck" in data.regions:
         data = remove_region(data, "lower_neck")
     return data
 

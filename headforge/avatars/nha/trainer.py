@@ -55,6 +55,8 @@ TTO_CHECKPOINT_FRAMES = 64  # held-out frames test-time fitted between two check
 class NHAConfig:
     resolution: int = 256
     subdivide: bool = True
+    remove_lower_neck: bool = True  # App. A.1; open-head's cut leaves the neck open just under the chin, where
+    # a camera below sees into it (README, Table 1 section)
     embed_dim: int = 32
     geo_layers: int = 6
     geo_width: int = 128
@@ -437,7 +439,7 @@ def build_avatar(dataset: Path, config: NHAConfig):
     meta = read_meta(dataset)
     data = load_data(meta["model"], None)
     tracking = load_file(str(dataset / "tracking.safetensors"))
-    return NeuralHeadAvatar(build_template(data, config.subdivide), tracking, config), meta
+    return NeuralHeadAvatar(build_template(data, config.subdivide, config.remove_lower_neck), tracking, config), meta
 
 
 def save_checkpoint(run: Path, avatar, optimisers: dict, state: dict) -> None:
