@@ -56,7 +56,8 @@ class NHAConfig:
     resolution: int = 256
     subdivide: bool = True
     remove_lower_neck: bool = True  # App. A.1; open-head's cut leaves the neck open just under the chin, where
-    # a camera below sees into it (README, Table 1 section)
+    # a camera below sees into it. False: Table 1 means 16.04 -> 15.86 deg, 3.85 -> 3.81 mm (README); the
+    # default waits for a talking_bun measurement
     embed_dim: int = 32
     geo_layers: int = 6
     geo_width: int = 128
