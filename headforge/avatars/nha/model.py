@@ -133,9 +133,7 @@ class NeuralHeadAvatar(nn.Module):
         edges = torch.unique(torch.sort(edges, 1).values, dim=0)
         self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
         self.register_buffer("uv_corners", self.head.face_corner_uvs())
-        boundary = _boundary_vertices(faces.numpy(), V)
-        ring = np.intersect1d(boundary, region("neck").numpy())
-        self.register_buffer("neck_ring", torch.as_tensor(ring if len(ring) else boundary, dtype=torch.long))
+        self.register_buffer("neck_ring", torch.as_tensor(_neck_cut_ring(template), dtype=torch.long))
         self.has_lips = self.head.num_landmarks == 478
         oval = face_oval_vertices(template) if self.has_lips else np.zeros(V, bool)
         self.register_buffer("face_oval", torch.as_tensor(oval, dtype=torch.float32)[:, None], persistent=False)  # derived
@@ -320,6 +318,23 @@ def _edges_without_face_to_scalp(faces: torch.Tensor, face: torch.Tensor, scalp:
     is_scalp[scalp] = True
     keep = ~(is_face[i] & is_scalp[j])
     return torch.stack([i[keep], j[keep]], 1)
+
+
+def _neck_cut_ring(data: HeadModelData) -> np.ndarray:
+    """Vertex indices of the neck cut, which bounds the image area the avatar is trained and
+    scored on (the rows above it): with the lower neck removed, the open boundary on the neck;
+    with it kept (``remove_lower_neck=False``), the open boundary the removal would leave -- the
+    same ring, so both templates see the same area. Falls back to any open boundary."""
+    faces, V = np.asarray(data.faces), len(data.v_template)
+    neck = np.zeros(V, dtype=bool)
+    neck[data.regions.get("neck", [])] = True
+    if "lower_neck" in data.regions:
+        lower = np.zeros(V, dtype=bool)
+        lower[data.regions["lower_neck"]] = True
+        faces = faces[~lower[faces].any(1)]  # the faces remove_region keeps (indices unchanged)
+    boundary = _boundary_vertices(faces, V)
+    ring = boundary[neck[boundary]]
+    return ring if len(ring) else boundary
 
 
 def _boundary_vertices(faces: np.ndarray, V: int) -> np.ndarray:
