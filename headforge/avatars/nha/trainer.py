@@ -56,8 +56,8 @@ class NHAConfig:
     resolution: int = 256
     subdivide: bool = True
     remove_lower_neck: bool = True  # App. A.1; open-head's cut leaves the neck open just under the chin, where
-    # a camera below sees into it. False: Table 1 means 16.04 -> 15.86 deg, 3.85 -> 3.81 mm (README); the
-    # default waits for a talking_bun measurement
+    # a camera below sees into it. False keeps the cut's ring as the area's bound; README, Table 1 section:
+    # Table 1 means within run-to-run spread (16.04 -> 16.01 deg, 3.85 -> 3.89 mm), talking_bun 24.19 -> 24.22 dB
     embed_dim: int = 32
     geo_layers: int = 6
     geo_width: int = 128
