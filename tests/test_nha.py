@@ -92,7 +92,6 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     far = avatar.neck_fade[:, 0] == 0
     assert far.sum() > 100 and moved[far].max() < 1e-7
     assert moved[~far].max() > 1e-5
-    assert avatar.head.num_vertices < 4570  # the lower neck is removed from the template
 
 
 def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
@@ -144,10 +143,10 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     assert torch.allclose(plain.laplacian_term(bump), cut.laplacian_term(bump), rtol=1e-5, atol=1e-7)
 
 
-def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_the_same_neck_cut(synth_bench, tiny_config):
-    """``remove_lower_neck=False`` trains on the whole head model (App. A.1's cut is the default):
-    no vertex is dropped, and the neck ring that bounds the trained and scored image area is the
-    cut's ring, the same points in both templates (not the lower open boundary of the whole model)."""
+def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_scores_above_the_same_neck_cut(synth_bench, tiny_config):
+    """``remove_lower_neck=False`` (the default) trains on the whole head model, True is App. A.1's cut:
+    no vertex is dropped; the ring that bounds the scored image area is the cut's, the same points
+    in both templates, while the energies' area reaches down to the kept neck's open end."""
     from dataclasses import replace
 
     from headforge.avatars.nha.trainer import build_avatar
@@ -164,6 +163,9 @@ def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_the_same_neck_
     assert len(cut.neck_ring) > 0
     np.testing.assert_array_equal(ring(kept), ring(cut))
     assert kept.head.v_template[:, 1].min() < cut.head.v_template[:, 1].min() - 0.005  # the neck goes lower
+    assert torch.equal(cut.train_ring, cut.neck_ring)
+    kept_train_y, cut_train_y = (a.head.v_template[a.train_ring, 1].mean() for a in (kept, cut))  # +y up
+    assert kept_train_y < cut_train_y - 0.005
 
 
 def test_the_shell_laplacian_leaves_an_even_hair_shell_free_and_the_rest_as_before(synth_bench, tiny_config):
@@ -517,6 +519,9 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
     assert NHAConfig().laplacian_face_cut is True
     assert NHAConfig.from_saved({"seed": 3}, tmp_path).laplacian_face_cut is False
     assert NHAConfig.from_saved({"laplacian_face_cut": True}, tmp_path).laplacian_face_cut is True
+    # ...and one written before remove_lower_neck existed trained on the cut template.
+    assert NHAConfig().remove_lower_neck is False
+    assert NHAConfig.from_saved({"seed": 3}, tmp_path).remove_lower_neck is True
     with pytest.raises(HeadforgeError, match="not a headforge dataset"):
         fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])

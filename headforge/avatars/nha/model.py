@@ -33,8 +33,9 @@ LAPLACIAN_WEIGHTS = {"neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyel
                      "eyeballs": 50.0, "mouth_interior": 20.0}
 
 
-def build_template(data: HeadModelData, subdivide: bool = True, remove_lower_neck: bool = True) -> HeadModelData:
-    """NHA's template (App. A.1): 4-way subdivision, lower neck removed (``remove_lower_neck``)."""
+def build_template(data: HeadModelData, subdivide: bool, remove_lower_neck: bool) -> HeadModelData:
+    """NHA's template (App. A.1): 4-way subdivision (``subdivide``), lower neck removed
+    (``remove_lower_neck``; headforge keeps it by default, see NHAConfig)."""
     if subdivide:
         data = subdivide_head(data)
     if remove_lower_neck and "lower_neck" in data.regions:
@@ -133,7 +134,12 @@ class NeuralHeadAvatar(nn.Module):
         edges = torch.unique(torch.sort(edges, 1).values, dim=0)
         self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
         self.register_buffer("uv_corners", self.head.face_corner_uvs())
+        # The rows above a ring's mean row bound an image area. neck_ring (the cut's) bounds the scored
+        # area; train_ring (the template's own open neck boundary: the same ring on the cut template, 3 cm
+        # lower with the lower neck kept) bounds the area of the training and fitting energies.
         self.register_buffer("neck_ring", torch.as_tensor(_neck_cut_ring(template), dtype=torch.long))
+        self.register_buffer("train_ring", torch.as_tensor(_open_neck_ring(template), dtype=torch.long),
+                             persistent=False)  # derived
         self.has_lips = self.head.num_landmarks == 478
         oval = face_oval_vertices(template) if self.has_lips else np.zeros(V, bool)
         self.register_buffer("face_oval", torch.as_tensor(oval, dtype=torch.float32)[:, None], persistent=False)  # derived
@@ -321,17 +327,26 @@ def _edges_without_face_to_scalp(faces: torch.Tensor, face: torch.Tensor, scalp:
 
 
 def _neck_cut_ring(data: HeadModelData) -> np.ndarray:
-    """Vertex indices of the neck cut, which bounds the image area the avatar is trained and
-    scored on (the rows above it): with the lower neck removed, the open boundary on the neck;
-    with it kept (``remove_lower_neck=False``), the open boundary the removal would leave -- the
-    same ring, so both templates see the same area. Falls back to any open boundary."""
-    faces, V = np.asarray(data.faces), len(data.v_template)
-    neck = np.zeros(V, dtype=bool)
-    neck[data.regions.get("neck", [])] = True
+    """Vertex indices of the neck cut, which bounds the scored image area (the rows above it):
+    with the lower neck removed, the open boundary on the neck; with it kept
+    (``remove_lower_neck=False``), the open boundary the removal would leave -- the same ring, so
+    both templates are scored on the same pixels. Falls back to any open boundary."""
+    faces = np.asarray(data.faces)
     if "lower_neck" in data.regions:
-        lower = np.zeros(V, dtype=bool)
+        lower = np.zeros(len(data.v_template), dtype=bool)
         lower[data.regions["lower_neck"]] = True
         faces = faces[~lower[faces].any(1)]  # the faces remove_region keeps (indices unchanged)
+    return _open_neck_ring(data, faces)
+
+
+def _open_neck_ring(data: HeadModelData, faces: np.ndarray | None = None) -> np.ndarray:
+    """Vertex indices of the open boundary of ``faces`` (default: the template's) on the neck,
+    which bounds the trained image area: the neck the template has, down to its end. Falls back
+    to any open boundary."""
+    faces = np.asarray(data.faces) if faces is None else faces
+    V = len(data.v_template)
+    neck = np.zeros(V, dtype=bool)
+    neck[data.regions.get("neck", [])] = True
     boundary = _boundary_vertices(faces, V)
     ring = boundary[neck[boundary]]
     return ring if len(ring) else boundary

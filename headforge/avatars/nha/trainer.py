@@ -46,7 +46,7 @@ from headforge.head.landmarks import FACE_OVAL_LOOP
 RUN_FORMAT = "headforge-run"
 # Settings whose default changed after they were added: a config.json that lacks one was written by
 # code that behaved as the value here, not as today's default.
-LEGACY_SETTINGS = {"laplacian_face_cut": False}
+LEGACY_SETTINGS = {"laplacian_face_cut": False, "remove_lower_neck": True}
 ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
 TTO_CHECKPOINT_FRAMES = 64  # held-out frames test-time fitted between two checkpoints (~3 min on 2 CPU cores)
 
@@ -55,9 +55,10 @@ TTO_CHECKPOINT_FRAMES = 64  # held-out frames test-time fitted between two check
 class NHAConfig:
     resolution: int = 256
     subdivide: bool = True
-    remove_lower_neck: bool = True  # App. A.1; open-head's cut leaves the neck open just under the chin, where
-    # a camera below sees into it. False keeps the cut's ring as the area's bound; README, Table 1 section:
-    # Table 1 means within run-to-run spread (16.04 -> 16.01 deg, 3.85 -> 3.89 mm), talking_bun 24.19 -> 24.22 dB
+    remove_lower_neck: bool = False  # True: App. A.1's cut. open-head's lower neck starts, at the front, right
+    # at the face's lower edge, so the cut leaves the neck open under the chin, where a camera below sees into
+    # it. Kept, the energies' area reaches down to its end (model.train_ring), which puts the chin's and jaw's
+    # outline in the silhouette terms; the scored area stays the cut's. README, Table 1 section
     embed_dim: int = 32
     geo_layers: int = 6
     geo_width: int = 128
@@ -256,10 +257,11 @@ def _cameras(K: torch.Tensor, B: int, res: int):
     return Cameras(K.expand(B, 3, 3), torch.eye(3, device=K.device).expand(B, 3, 3), K.new_zeros(B, 3), res, res)
 
 
-def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
-    """(B, H, W) bool: pixels above the neck cut (the mean row of the projected neck ring);
-    below it the foreground mask shows neck and shoulders the avatar does not model."""
-    ring = verts[:, avatar.neck_ring]
+def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int, ring: str = "neck_ring") -> torch.Tensor:
+    """(B, H, W) bool: pixels above the neck cut (the mean row of the projected ``ring``: the
+    avatar's ``neck_ring``, which bounds the scored area, or ``train_ring``, which bounds the
+    energies'); below it the foreground mask shows neck and shoulders the avatar does not model."""
+    ring = verts[:, getattr(avatar, ring)]
     y = (ring[..., 1] / ring[..., 2]) * K[1, 1] + K[1, 2]
     cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
     rows = torch.arange(res, dtype=verts.dtype, device=verts.device)[None, :, None]
@@ -348,7 +350,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     semantic = config.w_semantic > 0 and stage != "texture"
     r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric, face_region=semantic,
                       matte=False)
-    area = _above_neck(avatar, r.vertices, K, res)
+    area = _above_neck(avatar, r.vertices, K, res, ring="train_ring")
     gt_mask = batch["mask"] * area
     out = {}
     # landmarks (L1, pixels / resolution), detections that exist only
