@@ -92,6 +92,31 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     far = avatar.neck_fade[:, 0] == 0
     assert far.sum() > 100 and moved[far].max() < 1e-7
     assert moved[~far].max() > 1e-5
+    assert avatar.head.num_vertices >= 4570  # the default template keeps the lower neck
+
+
+def test_the_energies_reach_below_the_scored_neck_cut_when_the_lower_neck_is_kept(synth_bench, tiny_config):
+    """With the lower neck kept, the silhouette term sees mask pixels between the scored area's
+    bound (the cut's ring) and the kept neck's end; what :func:`evaluate` scores stops at the cut."""
+    from headforge.avatars.nha.trainer import FrameData, _above_neck, build_avatar, composites, losses
+
+    dataset = synth_bench[0] / "subject_00"
+    avatar, _ = build_avatar(dataset, tiny_config)
+    res = tiny_config.resolution
+    data = FrameData(dataset, "val", res)
+    batch = data.batch(torch.arange(2))
+    with torch.no_grad():
+        verts = avatar.pose(avatar.frame_params(batch["index"]))[0]
+        scored = _above_neck(avatar.neck_ring, verts, data.K, res)
+        trained = _above_neck(avatar.train_ring, verts, data.K, res)
+        band = trained & ~scored  # rows the energies see and the scores do not
+        assert band.any() and not (scored & ~trained).any()
+        flipped = dict(batch, mask=torch.where(band, 1 - batch["mask"], batch["mask"]))
+        sil = [losses(avatar, b, data.K, tiny_config, "align")["silhouette"] for b in (batch, flipped)]
+        assert not torch.isclose(sil[0], sil[1])
+        _, _, gt, _ = composites(avatar, batch, data.K, tiny_config, matte=False)
+        _, _, gt_flipped, _ = composites(avatar, flipped, data.K, tiny_config, matte=False)
+        assert torch.equal(gt, gt_flipped)
 
 
 def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
@@ -313,7 +338,7 @@ def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_co
         covered = mesh.rasterize(_cameras(data.K, 2, res), verts, avatar.head.faces).face_id >= 0
     band = outer_band(covered, width=2)
     assert band[~covered].all() and not band[covered].all() and band[covered].any()
-    area = _above_neck(avatar, verts, data.K, res)
+    area = _above_neck(avatar.neck_ring, verts, data.K, res)
     own = covered.float() * area
     kept = contour_term(avatar, verts, own, area, data.K, res, covered) * res  # pixels
     everything = contour_term(avatar, verts, own, area, data.K, res) * res

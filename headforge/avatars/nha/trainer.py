@@ -257,11 +257,12 @@ def _cameras(K: torch.Tensor, B: int, res: int):
     return Cameras(K.expand(B, 3, 3), torch.eye(3, device=K.device).expand(B, 3, 3), K.new_zeros(B, 3), res, res)
 
 
-def _above_neck(avatar, verts: torch.Tensor, K: torch.Tensor, res: int, ring: str = "neck_ring") -> torch.Tensor:
-    """(B, H, W) bool: pixels above the neck cut (the mean row of the projected ``ring``: the
-    avatar's ``neck_ring``, which bounds the scored area, or ``train_ring``, which bounds the
-    energies'); below it the foreground mask shows neck and shoulders the avatar does not model."""
-    ring = verts[:, getattr(avatar, ring)]
+def _above_neck(ring_indices: torch.Tensor, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
+    """(B, H, W) bool: pixels above the neck cut, the mean row of the ring ``ring_indices`` of
+    ``verts`` (B, V, 3) projected (the avatar's ``neck_ring`` bounds the scored area, its
+    ``train_ring`` the energies'); below it the foreground mask shows neck and shoulders the
+    avatar does not model."""
+    ring = verts[:, ring_indices]
     y = (ring[..., 1] / ring[..., 2]) * K[1, 1] + K[1, 2]
     cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
     rows = torch.arange(res, dtype=verts.dtype, device=verts.device)[None, :, None]
@@ -350,7 +351,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     semantic = config.w_semantic > 0 and stage != "texture"
     r = avatar.render(params, _cameras(K, B, res), background=1.0, texture=photometric, face_region=semantic,
                       matte=False)
-    area = _above_neck(avatar, r.vertices, K, res, ring="train_ring")
+    area = _above_neck(avatar.train_ring, r.vertices, K, res)
     gt_mask = batch["mask"] * area
     out = {}
     # landmarks (L1, pixels / resolution), detections that exist only
@@ -570,7 +571,7 @@ def composites(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, matte: b
     fitted soft edge (else the antialiased one)."""
     r = avatar.render(avatar.frame_params(batch["index"]), _cameras(K, len(batch["index"]), config.resolution),
                       background=1.0, matte=matte)
-    area = _above_neck(avatar, r.vertices, K, config.resolution)
+    area = _above_neck(avatar.neck_ring, r.vertices, K, config.resolution)
     gt = matte_on_white(batch["image"], batch["mask"] * area)
     pred = r.rgb * area[..., None] + (1 - area[..., None].float())
     return r, pred, gt, area
