@@ -176,6 +176,29 @@ def test_paired_normal_error_scores_two_predictions_on_the_pixels_both_cover(ben
         assert not (tmp_path / "refused").exists()
 
 
+def test_normal_error_by_label_adds_up_to_the_full_head_figure(bench, open_head_data):
+    """The per-label split of the tracked model's full-head normal error: on one frame the shares
+    weight the labels' errors back to evaluate_geometry's figure; the bald model covers the face
+    but not all of the hair; the GT meshes scored as a prediction sit at the renderer's floor."""
+    from headforge.metrics.benchmark import evaluate_geometry, load_subject_gt, normal_error_by_label, split_rows
+
+    out, _, _ = bench
+    subject = out / "subject_00"
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", 1)
+    one = len(rows)  # every = the frame count: the first GT frame alone
+    split = normal_error_by_label(subject, subject, every=one)
+    assert set(split) == {name for name, value in info["labels"].items() if value in info["head_labels"]}
+    assert abs(sum(r["share"] for r in split.values()) - 1) < 1e-9
+    pooled = sum(r["share"] * r["deg"] for r in split.values())
+    protocol = evaluate_geometry(subject, subject, every=one, samples=200)["mean"]["normal_error_head_deg"]
+    assert abs(pooled - protocol) < 0.01
+    assert split["face"]["covered"] > 0.95 and split["hair"]["covered"] < split["face"]["covered"]
+    floor = normal_error_by_label(None, subject, every=one)
+    assert floor["face"]["deg"] < 2 and floor["face"]["covered"] > 0.99 and floor["hair"]["covered"] > 0.95
+    assert floor["face"]["deg"] < split["face"]["deg"] / 2
+
+
 def test_outer_surface_drops_the_scalp_under_the_hair_and_the_hair_shell_inside_the_skin():
     """A unit-sphere head whose top is covered by a closed hair volume from r = 0.98 (under the
     skin) to r = 1.2 above z = 0.31: only the outer hair cap, its rim and the bare lower skin are outer."""

@@ -280,6 +280,43 @@ def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | 
             "per_frame": per_frame}
 
 
+def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: str = "val",
+                          every: int = 1) -> dict[str, dict[str, float]]:
+    """The full-head normal error of ``pred`` (a tracked dataset or exported geometry, as for
+    :func:`evaluate_geometry`; None scores the GT meshes themselves, the floor the renderer and
+    the 8-bit normal maps leave) split by GT label, the pixels pooled over every ``every``-th GT
+    frame of ``split``. Per label name of the GT's full head: ``deg`` (mean angle error on the
+    covered pixels), ``covered`` (fraction of the label's GT pixels the prediction covers) and
+    ``share`` (the label's share of the prediction's covered full-head pixels; so
+    ``sum(share * deg)`` is the pixel-pooled full-head error, which :func:`evaluate_geometry`
+    averages per frame instead)."""
+    subject = Path(subject)
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, split, every)
+    frames = gt["frames"][rows]
+    if pred is None:
+        vertices, faces, lookup = gt["vertices"], gt["faces"], rows
+    else:
+        prediction = load_prediction(Path(pred), frames)
+        vertices, faces = prediction.vertices, prediction.faces
+        lookup = prediction_rows(prediction, frames, Path(pred))
+    K, res = np.asarray(info["intrinsics"]), int(info["resolution"])
+    names = {value: name for name, value in info["labels"].items()}
+    sums = {label: np.zeros(3) for label in info["head_labels"]}  # error sum, covered px, GT px
+    for j, frame in enumerate(frames):
+        gt_n, labels = read_gt_maps(subject, int(frame), res)
+        pred_n = render_normals(vertices[lookup[j]], faces, K, res)
+        covered = _rendered(pred_n)
+        cos = (pred_n * gt_n).sum(-1) / np.maximum(np.linalg.norm(gt_n, axis=-1), 1e-6)
+        err = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        for label in sums:
+            gt_px = labels == label
+            sums[label] += (err[gt_px & covered].sum(), (gt_px & covered).sum(), gt_px.sum())
+    total = max(sum(s[1] for s in sums.values()), 1)
+    return {names[label]: {"deg": float(s[0] / max(s[1], 1)), "covered": float(s[1] / max(s[2], 1)),
+                           "share": float(s[1] / total)} for label, s in sums.items()}
+
+
 def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val", samples: int = 10_000,
                       every: int = 1) -> dict:
     """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""

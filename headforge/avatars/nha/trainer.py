@@ -58,7 +58,7 @@ class NHAConfig:
     remove_lower_neck: bool = False  # True: App. A.1's cut. open-head's lower neck starts, at the front, right
     # at the face's lower edge, so the cut leaves the neck open under the chin, where a camera below sees into
     # it. Kept, the energies' area reaches down to its end (model.train_ring), which puts the chin's and jaw's
-    # outline in the silhouette terms; the scored area stays the cut's. README, Table 1 section
+    # outline in the silhouette terms; the scored area stays the cut's. docs/nha_table1.md
     embed_dim: int = 32
     geo_layers: int = 6
     geo_width: int = 128
@@ -87,17 +87,17 @@ class NHAConfig:
     w_rgb: float = 1.0
     w_ssim: float = 0.2
     w_laplacian: float = 1.0  # on offsets in mm, times the per-region weights
-    laplacian_scalp: float = 0.1  # the scalp's region weight (the face's is 20); README, Table 1
-    # section: 1.0 is worse on the synthetic subjects; with the face cut at 2000 it. 0.02 takes curly 3.21 ->
+    laplacian_scalp: float = 0.1  # the scalp's region weight (the face's is 20); docs/nha_table1.md:
+    # 1.0 is worse on the synthetic subjects; with the face cut at 2000 it. 0.02 takes curly 3.21 ->
     # 2.94 mm but costs bob 2.3 deg, so the scalp keeps 0.1
     laplacian_top_back_factor: float = 1.0  # times laplacian_scalp on the scalp's top-back (model.scalp_top_back),
-    # which no outline sees in a frontal clip; README, Table 1 section: 0.2 still costs bob 2.0 deg and
+    # which no outline sees in a frontal clip; docs/nha_table1.md: 0.2 still costs bob 2.0 deg and
     # gives curly only 0.10 mm, so 1.0
     laplacian_face_cut: bool = True  # the face's Laplacian ignores scalp neighbours (model.py), so hair grown on
-    # the scalp does not drag the face border up; README, Table 1 section: 2000 it. mean 17.48 -> 16.29 deg
+    # the scalp does not drag the face border up; docs/nha_table1.md: 2000 it. mean 17.48 -> 16.29 deg
     laplacian_scalp_shell: bool = False  # the scalp's Laplacian on the hair's thickness along the template
-    # normal instead of the offset vector (model.laplacian_term): an even hair shell costs nothing; README,
-    # Table 1 section: worse on curly (3.21 -> 3.54 mm) and bob (22.56 -> 25.33 deg), so off
+    # normal instead of the offset vector (model.laplacian_term): an even hair shell costs nothing;
+    # docs/nha_table1.md: worse on curly (3.21 -> 3.54 mm) and bob (22.56 -> 25.33 deg), so off
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
     w_edge: float = 10.0
