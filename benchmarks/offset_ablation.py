@@ -2,6 +2,7 @@
 
     python benchmarks/offset_ablation.py SUBJECT RUN [--variants all,none,no_face,no_face_border,no_face_interior]
                                          [--rings 3] [--every 4] [--shapes learned,tracked]
+                                         [--params fitted,tracked]
 
 SUBJECT is one `headforge synth` subject folder (with gt/), RUN an NHA run folder fitted on it.
 The avatar is posed at the validation GT frames with its own fitted per-frame parameters (as
@@ -18,6 +19,8 @@ after training (geometry only; nothing is retrained):
 
 ``--shapes`` scores each variant with the identity shape the run learned (``learned``, the default),
 with the shape the tracker gave the dataset, which training started from (``tracked``), or both.
+``--params`` poses the frames with the run's own per-frame parameters (``fitted``, the default:
+the validation frames' from the test-time fitting) or with the tracker's (``tracked``), or both.
 
 Prints one line per variant and shape and, last, one JSON line with every figure. A variant that
 scores better than ``all`` points at offsets that the energies grew against the ground truth.
@@ -38,6 +41,7 @@ from headforge.metrics.benchmark import evaluate_geometry, load_subject_gt
 
 VARIANTS = ("all", "none", "no_face", "no_face_border", "no_face_interior")
 SHAPES = ("learned", "tracked")
+PARAMS = ("fitted", "tracked")
 SHOWN = ("normal_error_head_deg", "normal_error_face_deg", "hausdorff_full_mm", "hausdorff_face_mm",
          "hausdorff_full_outer_mm", "head_coverage")
 
@@ -58,10 +62,15 @@ def face_border(avatar, rings: int) -> torch.Tensor:
 
 def tracked_shape(run: Path, avatar) -> torch.Tensor:
     """(1, n_shape) identity shape of the run's dataset as the tracker left it (training's start)."""
+    return tracked_params(run)["shape"].float()[:, : avatar.shape.shape[1]]
+
+
+def tracked_params(run: Path) -> dict[str, torch.Tensor]:
+    """The per-frame parameters the tracker gave the run's dataset (as ``tracking.safetensors`` holds them)."""
     from safetensors.torch import load_file
 
     dataset = Path(json.loads((run / "config.json").read_text())["dataset"])
-    return load_file(str(dataset / "tracking.safetensors"))["shape"].float()[:, : avatar.shape.shape[1]]
+    return load_file(str(dataset / "tracking.safetensors"))
 
 
 def zeroed_vertices(avatar, variant: str, rings: int) -> torch.Tensor:
@@ -86,14 +95,18 @@ def main() -> None:
     parser.add_argument("--rings", type=int, default=3)
     parser.add_argument("--every", type=int, default=4)
     parser.add_argument("--shapes", default="learned")
+    parser.add_argument("--params", default="fitted")
     args = parser.parse_args()
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     shapes = [v.strip() for v in args.shapes.split(",") if v.strip()]
+    param_sets = [v.strip() for v in args.params.split(",") if v.strip()]
     unknown = sorted(set(variants) - set(VARIANTS))
     if unknown:
         raise SystemExit(f"error: unknown variants {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
     if not shapes or set(shapes) - set(SHAPES):
         raise SystemExit(f"error: --shapes takes {' and/or '.join(SHAPES)}, got {args.shapes!r}")
+    if not param_sets or set(param_sets) - set(PARAMS):
+        raise SystemExit(f"error: --params takes {' and/or '.join(PARAMS)}, got {args.params!r}")
     try:
         load_subject_gt(args.subject)
         avatar, _, _ = load_run(args.run)
@@ -103,21 +116,28 @@ def main() -> None:
     trained_offsets = avatar.offsets
     identity = {"learned": avatar.shape.detach().clone(), "tracked": tracked_shape(args.run, avatar)}
     results = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for shape in shapes:
-            avatar.shape.data.copy_(identity[shape])
-            for variant in variants:
-                zero = zeroed_vertices(avatar, variant, args.rings)
-                keep = (~zero)[:, None].float()
-                avatar.offsets = lambda neck_pose, keep=keep: trained_offsets(neck_pose) * keep
-                name = variant if shapes == ["learned"] else f"{variant}/{shape}"
-                folder = Path(tmp) / name.replace("/", "_")
-                folder.mkdir()
-                export_geometry(avatar, args.subject, folder / "geometry.safetensors")
-                mean = evaluate_geometry(folder, args.subject, every=args.every)["mean"]
-                results[name] = {"zeroed_vertices": int(zero.sum())} | {k: round(float(mean[k]), 3) for k in SHOWN}
-                print(f"{name:25s} zeroed {int(zero.sum()):5d} | "
-                      + "  ".join(f"{k} {results[name][k]}" for k in SHOWN), flush=True)
+    fitted = {k: v.detach().clone() for k, v in avatar.frames.items()}
+    tracked = avatar.params_from_tracking(tracked_params(args.run))
+    frame_sets = {"fitted": fitted, "tracked": {k: tracked[k][: len(v)] for k, v in fitted.items()}}
+    with tempfile.TemporaryDirectory() as tmp, torch.no_grad():
+        for params in param_sets:
+            for k, v in avatar.frames.items():
+                v.copy_(frame_sets[params][k])
+            for shape in shapes:
+                avatar.shape.data.copy_(identity[shape])
+                for variant in variants:
+                    zero = zeroed_vertices(avatar, variant, args.rings)
+                    keep = (~zero)[:, None].float()
+                    avatar.offsets = lambda neck_pose, keep=keep: trained_offsets(neck_pose) * keep
+                    name = "/".join([variant] + ([shape] if shapes != ["learned"] else [])
+                                    + ([f"{params} params"] if param_sets != ["fitted"] else []))
+                    folder = Path(tmp) / name.replace("/", "_").replace(" ", "_")
+                    folder.mkdir()
+                    export_geometry(avatar, args.subject, folder / "geometry.safetensors")
+                    mean = evaluate_geometry(folder, args.subject, every=args.every)["mean"]
+                    results[name] = {"zeroed_vertices": int(zero.sum())} | {k: round(float(mean[k]), 3) for k in SHOWN}
+                    print(f"{name:40s} zeroed {int(zero.sum()):5d} | "
+                          + "  ".join(f"{k} {results[name][k]}" for k in SHOWN), flush=True)
     print(json.dumps({"subject": str(args.subject), "run": str(args.run), "every": args.every, "rings": args.rings,
                       "variants": results}))
 
