@@ -220,6 +220,13 @@ def _rendered(normals: np.ndarray) -> np.ndarray:
     return np.linalg.norm(normals, axis=-1) > 0.5
 
 
+def _angle_map_deg(pred_n: np.ndarray, gt_n: np.ndarray) -> np.ndarray:
+    """(R, R) per-pixel angle (degrees) between a rendered (R, R, 3) unit normal map and the GT's
+    (8-bit, so renormalised)."""
+    cos = (pred_n * gt_n).sum(-1) / np.maximum(np.linalg.norm(gt_n, axis=-1), 1e-6)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def _normal_errors(pred_n: np.ndarray, gt_n: np.ndarray, head_px: np.ndarray, face_px: np.ndarray) -> tuple[float, float]:
     """Mean normal angle error (degrees) of a rendered (R, R, 3) map against the GT map over the
     (R, R) bool ``head_px`` and ``face_px`` masks, in that order."""
@@ -307,8 +314,7 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
         gt_n, labels = read_gt_maps(subject, int(frame), res)
         pred_n = render_normals(vertices[lookup[j]], faces, K, res)
         covered = _rendered(pred_n)
-        cos = (pred_n * gt_n).sum(-1) / np.maximum(np.linalg.norm(gt_n, axis=-1), 1e-6)
-        err = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        err = _angle_map_deg(pred_n, gt_n)
         for label in sums:
             gt_px = labels == label
             sums[label] += (err[gt_px & covered].sum(), (gt_px & covered).sum(), gt_px.sum())
@@ -369,8 +375,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
                           "hausdorff_full_outer_mm": 1000 * full_outer["mean"],
                           "head_coverage": float(head_px.sum() / gt_head_px.sum())})
         if len(error_maps) < 3:
-            cos = (pred_n * gt_n).sum(-1) / np.maximum(np.linalg.norm(gt_n, axis=-1), 1e-6)
-            err = np.where(head_px, np.degrees(np.arccos(np.clip(cos, -1, 1))) / 45.0, 0)
+            err = np.where(head_px, _angle_map_deg(pred_n, gt_n) / 45.0, 0)
             error_maps.append(np.concatenate([0.5 * (gt_n + 1), 0.5 * (pred_n + 1), np.repeat(err[..., None], 3, -1)], 1))
     keys = [k for k in per_frame[0] if k != "frame"]
     mean = {k: float(np.mean([r[k] for r in per_frame])) for k in keys}
