@@ -33,12 +33,13 @@ def main() -> None:
     results = {}
     for pred in ([None] if args.gt else []) + args.predictions:
         try:
-            results[str(pred or "gt")] = normal_error_by_label(pred, args.subject, "val", args.every)
+            split = normal_error_by_label(pred, args.subject, "val", args.every)
         except HeadforgeError as err:
             raise SystemExit(f"error: {err}") from None
-        pooled = sum(r["share"] * r["deg"] for r in results[str(pred or "gt")].values())
+        results[str(pred or "gt")] = split
+        pooled = sum(r["share"] * r["deg"] for r in split.values())
         print(f"{pred or 'GT meshes'}: pooled full head {pooled:.2f} deg")
-        for name, r in results[str(pred or "gt")].items():
+        for name, r in split.items():
             print(f"  {name:10s} {r['deg']:6.2f} deg  covered {r['covered']:.3f}  share {r['share']:.3f}")
     print(json.dumps({"subject": str(args.subject), "every": args.every, "predictions": results}))
 

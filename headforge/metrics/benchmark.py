@@ -317,7 +317,8 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
         err = _angle_map_deg(pred_n, gt_n)
         for label in sums:
             gt_px = labels == label
-            sums[label] += (err[gt_px & covered].sum(), (gt_px & covered).sum(), gt_px.sum())
+            hit = gt_px & covered
+            sums[label] += (err[hit].sum(), hit.sum(), gt_px.sum())
     total = max(sum(s[1] for s in sums.values()), 1)
     return {names[label]: {"deg": float(s[0] / max(s[1], 1)), "covered": float(s[1] / max(s[2], 1)),
                            "share": float(s[1] / total)} for label, s in sums.items()}
