@@ -317,9 +317,68 @@ def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, t
     bary = mesh.barycentrics(frags, cams, verts, faces)
     hit = frags.face_id >= 0
     assert 0 < hit.float().mean() < 0.7  # the crop is smaller than the image
-    cropped = avatar._normal_patches(verts, frags, bary, hit)
-    whole = avatar.texture_net.encode_normals(mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary))[hit]
+    cropped, normals = avatar._normal_patches(verts, frags, bary, hit)
+    image = mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary)
+    whole = avatar.texture_net.encode_normals(image)[hit]
     assert torch.allclose(cropped, whole, atol=1e-6)
+    assert torch.equal(normals, image[hit])
+
+
+def test_albedo_tv_charges_a_smooth_ramp_in_full_and_a_step_only_at_its_edge():
+    from headforge.avatars.nha.trainer import albedo_tv
+
+    inside = torch.zeros(1, 8, 8, dtype=torch.bool)
+    inside[:, 1:7, 1:7] = True
+    ramp = torch.linspace(0, 0.5, 8)[None, None, :, None].expand(1, 8, 8, 3).clone()
+    step = torch.zeros(1, 8, 8, 3)
+    step[:, :, 4:] = 0.5  # the same rise, all at once
+    # 30 horizontal + 30 vertical neighbour pairs inside; the ramp rises 0.5/7 on each horizontal one
+    assert albedo_tv(ramp, inside).item() == pytest.approx(30 * 0.5 / 7 / 60, rel=1e-5)
+    assert albedo_tv(step, inside).item() == pytest.approx(6 * 0.5 / 60, rel=1e-5)
+    outside = ramp.clone()
+    outside[:, 0] = 9.0  # pixels outside ``inside`` cost nothing
+    assert albedo_tv(outside, inside).item() == pytest.approx(albedo_tv(ramp, inside).item())
+
+
+def test_a_shading_avatar_lights_its_albedo_at_the_rendered_normals(synth_bench, tiny_config):
+    """With ``shading`` the colour is T's albedo times the SH irradiance at the pixel's normal:
+    under a uniform environment the render is the albedo scaled, and a directional light makes
+    the colour depend on (and its gradient reach) the vertices through the normals."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.export import bake_texture
+    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar, losses
+    from headforge.render.shading import constant_sh
+
+    dataset = synth_bench[0] / "subject_00"
+    config = replace(tiny_config, shading=True)
+    avatar, _ = build_avatar(dataset, config)
+    plain, _ = build_avatar(dataset, tiny_config)
+    assert plain.sh is None and "sh" not in plain.state_dict()
+    data = FrameData(dataset, "val", config.resolution)
+    cams = _cameras(data.K, 1, config.resolution)
+    params = avatar.frame_params(data.index[:1])
+    with torch.no_grad():
+        avatar.sh.copy_(constant_sh(0.5))
+        r = avatar.render(params, cams, background=1.0, matte=False)
+    inner = torch.nn.functional.max_pool2d((~r.fragments.mask).float()[:, None], 3, 1, 1)[:, 0] == 0
+    assert inner.sum() > 100
+    assert torch.allclose(r.rgb[inner], 0.5 * r.albedo[inner], atol=1e-5)
+    with torch.no_grad():
+        avatar.sh.zero_()
+        avatar.sh[0] = 1.0
+        avatar.sh[2] = 0.8  # light along camera y: varies with the normal
+        lit = avatar.render(params, cams, background=1.0, matte=False)
+    ratio = (lit.rgb[inner] / lit.albedo[inner].clamp(min=1e-3))[:, 0]
+    assert ratio.std() > 0.05  # the irradiance changes across the head
+    batch = data.batch(torch.arange(1))
+    out = losses(avatar, batch, data.K, config, "joint")
+    assert out["albedo_tv"] > 0
+    out["rgb"].backward()
+    assert avatar.sh.grad.abs().sum() > 0
+    assert avatar.geometry_net.embedding.grad.abs().sum() > 0  # through the positions and the normals
+    texture = bake_texture(avatar, size=32)
+    assert texture.shape == (32, 32, 3) and np.isfinite(texture).all()
 
 
 def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_config):

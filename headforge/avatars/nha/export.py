@@ -24,6 +24,7 @@ def bake_texture(avatar, size: int = 512) -> np.ndarray:
     frontal camera, as a flat patch); texels outside the UV islands are dilated from inside."""
     from headforge.avatars.nha.model import FRAME_KEYS
     from headforge.head.topology import vertex_normals
+    from headforge.render.shading import sh_shading
     import cv2
 
     faces_uv = avatar.uv_corners  # (F, 3, 2)
@@ -48,6 +49,8 @@ def bake_texture(avatar, size: int = 512) -> np.ndarray:
                             net.encode_uniform_normals(n), m)
                         for c, u, n, m in zip(canon.split(65536), uv.split(65536), normal.split(65536),
                                               inner.split(65536))])
+    if avatar.sh is not None:  # a shading avatar: bake the albedo as lit in the training frames
+        colour = colour * sh_shading(normal, avatar.sh).clamp(min=0)
     image = np.zeros((size, size, 3), np.float32)
     image[hit.numpy()] = colour.numpy()
     # dilate into the gutters so bilinear lookups at island borders stay clean

@@ -21,6 +21,7 @@ from headforge.head.topology import directed_edges, laplacian_smooth, remove_reg
 from headforge.render import mesh
 from headforge.render.camera import Cameras
 from headforge.render.matte import soft_matte
+from headforge.render.shading import constant_sh, sh_shading
 
 FLIP = torch.tensor([1.0, -1.0, -1.0])
 FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
@@ -75,6 +76,7 @@ class Rendered:
     vertices: torch.Tensor  # (B, V, 3) camera space
     landmarks: torch.Tensor | None  # (B, L, 3) camera space
     offsets: torch.Tensor  # (B, V, 3) canonical offsets
+    albedo: torch.Tensor | None = None  # (B, H, W, 3) T's output before shading (``shading`` avatars), 0 off the mesh
 
 
 class NeuralHeadAvatar(nn.Module):
@@ -151,6 +153,11 @@ class NeuralHeadAvatar(nn.Module):
         # resolution, fitted after training (trainer.fit_matte); 0 = the antialiased edge
         self.register_buffer("matte_sigma", torch.zeros(()))
         self.register_buffer("matte_resolution", torch.tensor(float(config.resolution)))
+        # Optional (config.shading, beyond NHA): T's output is an albedo, lit by a learned 2nd-order SH
+        # environment fixed to the dataset camera at the pixel's rendered normal -- a shape-from-shading
+        # path from the photometric term to the normals that the albedo cannot absorb where it is
+        # kept piecewise smooth (trainer's albedo_tv term).
+        self.sh = nn.Parameter(constant_sh(1.0)) if config.shading else None
 
     # ---- geometry ------------------------------------------------------------------------
     def offsets(self, neck_pose: torch.Tensor) -> torch.Tensor:
@@ -216,6 +223,7 @@ class NeuralHeadAvatar(nn.Module):
         B, H, W = frags.face_id.shape
         hit = frags.face_id >= 0
         rgb = verts.new_full((B, H, W, 3), background)
+        albedo = None
         if texture and hit.any():
             bary = mesh.barycentrics(frags, cameras, verts, faces)
             fid = frags.face_id[hit]
@@ -224,10 +232,14 @@ class NeuralHeadAvatar(nn.Module):
             uv = (self.uv_corners[fid] * b[..., None]).sum(1)
             cond = self.mouth_condition(params, lmk)
             batch = torch.nonzero(hit)[:, 0]
-            patches = self._normal_patches(verts, frags, bary, hit)
+            patches, normals = self._normal_patches(verts, frags, bary, hit)
             colour = self.texture_net(canon, uv, cond[batch], self.mouth_faces[fid], patches,
                                       self.inner_mouth_faces[fid])
-            rgb = rgb.index_put(tuple(torch.nonzero(hit).T), colour)
+            pixels = tuple(torch.nonzero(hit).T)
+            if self.sh is not None:
+                albedo = verts.new_zeros((B, H, W, 3)).index_put(pixels, colour)
+                colour = colour * sh_shading(torch.nn.functional.normalize(normals, dim=-1), self.sh).clamp(min=0)
+            rgb = rgb.index_put(pixels, colour)
         channels = [rgb, hit[..., None].to(verts.dtype)]
         face_region = face_region and self.has_lips
         if face_region:
@@ -236,7 +248,8 @@ class NeuralHeadAvatar(nn.Module):
         rgb, coverage = out[..., :3], out[..., 3].clamp(0, 1)
         if matte and self.matte_sigma > 0:
             rgb, coverage = soft_matte(rgb, coverage, float(self.matte_sigma * H / self.matte_resolution), background)
-        return Rendered(rgb, coverage, out[..., 4].clamp(0, 1) if face_region else None, frags, verts, lmk, offsets)
+        return Rendered(rgb, coverage, out[..., 4].clamp(0, 1) if face_region else None, frags, verts, lmk, offsets,
+                        albedo)
 
     def _face_region(self, frags: mesh.Fragments, cameras: Cameras, verts: torch.Tensor) -> torch.Tensor:
         """(B, H, W, 1) interpolated face-oval indicator, with gradients to the vertices so the
@@ -256,9 +269,9 @@ class NeuralHeadAvatar(nn.Module):
             region = region.index_put(tuple(border.nonzero().T), value)
         return region
 
-    def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
+    def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor):
         """(N, C) normal-encoder features of the covered pixels, from the rendered camera-space
-        normals. The convolutions run on the covered pixels' bounding box plus a margin of the
+        normals, and those normals (N, 3; interpolated, not renormalised). The convolutions run on the covered pixels' bounding box plus a margin of the
         encoder's receptive radius, which gives the same features as the whole image."""
         faces = self.head.faces
         normals = mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary)  # (B, H, W, 3)
@@ -267,7 +280,7 @@ class NeuralHeadAvatar(nn.Module):
         y0, y1 = max(int(ys.min()) - margin, 0), min(int(ys.max()) + margin + 1, hit.shape[1])
         x0, x1 = max(int(xs.min()) - margin, 0), min(int(xs.max()) + margin + 1, hit.shape[2])
         feats = self.texture_net.encode_normals(normals[:, y0:y1, x0:x1])
-        return feats[hit[:, y0:y1, x0:x1]]
+        return feats[hit[:, y0:y1, x0:x1]], normals[hit]
 
     def contour_points(self, vertices: torch.Tensor, K: torch.Tensor, max_cos: float = 0.25) -> list[torch.Tensor]:
         """Per frame, the projected pixels (N_b, 2) of vertices on the silhouette rim: their

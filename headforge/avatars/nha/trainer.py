@@ -98,6 +98,10 @@ class NHAConfig:
     laplacian_scalp_shell: bool = False  # the scalp's Laplacian on the hair's thickness along the template
     # normal instead of the offset vector (model.laplacian_term): an even hair shell costs nothing;
     # docs/nha_table1.md: worse on curly (3.21 -> 3.54 mm) and bob (22.56 -> 25.33 deg), so off
+    shading: bool = False  # beyond NHA: T outputs an albedo lit by a learned SH environment at the rendered
+    # normal (model.NeuralHeadAvatar.sh), with w_albedo_tv keeping the albedo piecewise smooth;
+    # docs/nha_table1.md: the bob's hair does not flatten (22.12 deg vs 22.39) and talking_bun loses 0.8 dB, so off
+    w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
     w_edge: float = 10.0
@@ -381,6 +385,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         gt_comp = matted * w + (1 - w)
         pred_comp = r.rgb * w + (1 - w)
         out["ssim"] = config.w_ssim * (1 - ssim(pred_comp, gt_comp).mean())
+        if r.albedo is not None and config.w_albedo_tv > 0:
+            out["albedo_tv"] = config.w_albedo_tv * albedo_tv(r.albedo, inter)
     if stage != "texture":
         out["prior"] = config.w_prior * (params["expression"].pow(2).mean() + avatar.shape.pow(2).mean()
                                          + 10 * sum(params[k].pow(2).mean() for k in ("neck_pose", "jaw_pose")))
@@ -392,6 +398,20 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         if B > 1:  # surface consistency between the frames of the batch (random pairs)
             out["surface"] = config.w_surface * (r.offsets[0] - r.offsets[1]).abs().mean()
     return out
+
+
+def albedo_tv(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Mean L1 difference (per channel) of ``albedo`` (B, H, W, 3) between horizontally and
+    vertically neighbouring pixels that are both ``inside`` (B, H, W) bool. Shading baked into the
+    albedo varies smoothly and costs its full variation here; the piecewise-constant albedo of
+    hair, skin and lips costs only its edges."""
+    total, count = albedo.new_zeros(()), 0
+    for a, b, ia, ib in ((albedo[:, :, 1:], albedo[:, :, :-1], inside[:, :, 1:], inside[:, :, :-1]),
+                         (albedo[:, 1:], albedo[:, :-1], inside[:, 1:], inside[:, :-1])):
+        both = (ia & ib)[..., None]
+        total = total + ((a - b).abs() * both).sum()
+        count += int(both.sum())
+    return total / max(count, 1) / 3
 
 
 def _optimisers(avatar, config: NHAConfig):
@@ -406,7 +426,8 @@ def _optimisers(avatar, config: NHAConfig):
     grids = ("grid", "mouth_grid")
     texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n not in grids],
                                  "lr": config.lr_texture},
-                                {"params": [getattr(avatar.texture_net, n) for n in grids], "lr": config.lr_grid}])
+                                {"params": [getattr(avatar.texture_net, n) for n in grids], "lr": config.lr_grid}]
+                               + ([{"params": [avatar.sh], "lr": config.lr_texture * 10}] if avatar.sh is not None else []))
     return {"frames": frames, "geometry": geometry, "texture": texture}
 
 
