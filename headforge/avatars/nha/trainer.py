@@ -100,7 +100,8 @@ class NHAConfig:
     # docs/nha_table1.md: worse on curly (3.21 -> 3.54 mm) and bob (22.56 -> 25.33 deg), so off
     shading: bool = False  # beyond NHA: T outputs an albedo lit by a learned SH environment at the rendered
     # normal (model.NeuralHeadAvatar.sh), with w_albedo_tv keeping the albedo piecewise smooth;
-    # docs/nha_table1.md: the bob's hair does not flatten (22.12 deg vs 22.39) and talking_bun loses 0.8 dB, so off
+    # docs/nha_table1.md: at w_rgb 1 the bob's hair does not flatten and talking_bun loses 0.8 dB; with w_rgb 5 the
+    # synthetic normals improve (mean 15.86 -> 15.30 deg) but the real clip is unmeasured, so off for now
     w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
