@@ -271,8 +271,9 @@ class NeuralHeadAvatar(nn.Module):
 
     def _normal_patches(self, verts: torch.Tensor, frags, bary: torch.Tensor, hit: torch.Tensor):
         """(N, C) normal-encoder features of the covered pixels, from the rendered camera-space
-        normals, and those normals (N, 3; interpolated, not renormalised). The convolutions run on the covered pixels' bounding box plus a margin of the
-        encoder's receptive radius, which gives the same features as the whole image."""
+        normals, and those normals (N, 3; interpolated, not renormalised). The convolutions run
+        on the covered pixels' bounding box plus a margin of the encoder's receptive radius,
+        which gives the same features as the whole image."""
         faces = self.head.faces
         normals = mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary)  # (B, H, W, 3)
         margin = len(self.texture_net.normal_encoder.convs)
