@@ -101,7 +101,7 @@ class NHAConfig:
     shading: bool = False  # beyond NHA: T outputs an albedo lit by a learned SH environment at the rendered
     # normal (model.NeuralHeadAvatar.sh), with w_albedo_tv keeping the albedo piecewise smooth;
     # docs/nha_table1.md: at w_rgb 1 the bob's hair does not flatten and talking_bun loses 0.8 dB; with w_rgb 5 the
-    # synthetic normals improve (mean 15.86 -> 15.30 deg) but the real clip is unmeasured, so off for now
+    # synthetic normals improve (mean 15.86 -> 15.30 deg) but talking_bun drops to 23.13 dB, so off
     w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
     w_surface: float = 1.0
