@@ -16,6 +16,20 @@ def cache_dir() -> Path:
     return path
 
 
+def make_folder(path: Path) -> Path:
+    """``mkdir -p``, with a one-line error when a file is in the way or it is not allowed."""
+    from headforge.errors import HeadforgeError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise HeadforgeError(f"cannot write to {path}: a file of that name exists (expected a folder)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HeadforgeError(f"cannot create folder {path}: {exc.strerror or exc}") from None
+    return path
+
+
 def open_partial(output: Path, settings: dict, log) -> Path:
     """The work folder ``OUTPUT.partial`` of a resumable command: reused when it holds a run with
     the same ``settings`` (JSON-comparable), started afresh otherwise. The caller renames it to
@@ -23,15 +37,22 @@ def open_partial(output: Path, settings: dict, log) -> Path:
     import json
     import shutil
 
+    from headforge.errors import HeadforgeError
+
     work = output.with_name(output.name + ".partial")
+    if output.exists() and not output.is_dir():
+        raise HeadforgeError(f"cannot write to {output}: a file of that name exists (expected a folder)")
     settings = json.loads(json.dumps(settings))
     if work.exists():
-        previous = json.loads((work / "settings.json").read_text()) if (work / "settings.json").is_file() else None
+        try:
+            previous = json.loads((work / "settings.json").read_text())
+        except (OSError, ValueError):  # absent, or half-written when the run was killed
+            previous = None
         if previous != settings:
             log(f"{work} holds a run with other settings: starting over")
             shutil.rmtree(work)
         else:
             log(f"resuming the unfinished run in {work}")
-    work.mkdir(parents=True, exist_ok=True)
+    make_folder(work)
     (work / "settings.json").write_text(json.dumps(settings))
     return work

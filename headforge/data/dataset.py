@@ -1,4 +1,4 @@
-"""The headforge dataset format written by ``headforge track`` (and later ``headforge synth``).
+"""The headforge dataset format written by ``headforge track`` and ``headforge synth``.
 
     DATASET/
       dataset.json          format/version, model, resolution, fps, intrinsics K (crop pixels,
@@ -10,6 +10,9 @@
       frames/00000.png      RGB crops, resolution^2
       masks/00000.png       foreground masks (selfie segmentation), uint8
       metrics.json, overlay.mp4, transforms.json (NeRF-style, head-centric cameras)
+
+``fps`` is the rate of the kept frames: the source video's rate (or the rate given for a folder
+of frames, 30 by default) divided by ``every``.
 
 The camera is fixed at the origin (OpenCV axes); the head moves. A head vertex x (canonical,
 posed by the head model with these parameters) lands at diag(1, -1, -1) x + translation.
@@ -31,7 +34,13 @@ VERSION = 1
 FLIP = np.diag([1.0, -1.0, -1.0])
 
 
+TRACKING_KEYS = ("shape", "expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose",
+                 "translation", "landmarks", "valid")
+META_KEYS = ("model", "resolution", "intrinsics", "frames")
+
+
 def read_meta(root: str | Path) -> dict:
+    """``dataset.json`` of a dataset folder, checked for format, version and required keys."""
     root = Path(root)
     path = root / "dataset.json"
     if not path.is_file():
@@ -47,7 +56,50 @@ def read_meta(root: str | Path) -> dict:
     if meta.get("version") != VERSION:
         raise HeadforgeError(f"{root} was written by dataset version {meta.get('version')}, this headforge reads "
                              f"version {VERSION}: re-run headforge track")
+    missing = [key for key in META_KEYS if key not in meta]
+    if missing:
+        raise HeadforgeError(f"{path} lacks {', '.join(repr(k) for k in missing)}: re-run headforge track")
     return meta
+
+
+def load_tracking(root: str | Path, meta: dict | None = None) -> dict[str, torch.Tensor]:
+    """``tracking.safetensors`` of a dataset folder as tensors; a one-line error when it is
+    missing, unreadable (truncated, not safetensors), lacks a key, or does not cover the frames
+    of ``dataset.json`` (``meta``, read when not given)."""
+    root = Path(root)
+    meta = read_meta(root) if meta is None else meta
+    path = root / "tracking.safetensors"
+    if not path.is_file():
+        raise HeadforgeError(f"{path} is missing")
+    try:
+        tracking = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own SafetensorError, OSError, ...
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise HeadforgeError(f"{path} is unreadable (truncated or not safetensors: {reason}): re-run headforge track") from None
+    missing = [key for key in TRACKING_KEYS if key not in tracking]
+    if missing:
+        raise HeadforgeError(f"{path} lacks {', '.join(missing)}: re-run headforge track")
+    T = len(meta["frames"])
+    short = [key for key in TRACKING_KEYS if key != "shape" and tracking[key].shape[0] != T]
+    if short or tracking["shape"].ndim != 2:
+        key = short[0] if short else "shape"
+        raise HeadforgeError(f"{path}: '{key}' has shape {tuple(tracking[key].shape)}, dataset.json lists {T} frames")
+    return tracking
+
+
+def read_image(path: Path, grey: bool = False) -> np.ndarray:
+    """A dataset image as float32 in [0, 1]: (H, W, 3) RGB, or (H, W) with ``grey``; a one-line
+    error names a missing or unreadable file."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise HeadforgeError(f"{path} is missing")
+    try:
+        with Image.open(path) as handle:
+            array = np.asarray(handle.convert("L") if grey else handle.convert("RGB"), np.float32)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise HeadforgeError(f"{path} is unreadable: {exc}") from None
+    return array / 255
 
 
 class HeadDataset(torch.utils.data.Dataset):
@@ -62,10 +114,7 @@ class HeadDataset(torch.utils.data.Dataset):
             raise HeadforgeError(f"split must be train, val or all, got {split!r}")
         self.root = Path(root)
         self.meta = read_meta(self.root)
-        tracking_path = self.root / "tracking.safetensors"
-        if not tracking_path.is_file():
-            raise HeadforgeError(f"{tracking_path} is missing")
-        self.tracking = load_file(str(tracking_path))
+        self.tracking = load_tracking(self.root, self.meta)
         self.K = torch.tensor(self.meta["intrinsics"], dtype=torch.float32)
         self.records = [r for r in self.meta["frames"]
                         if (split == "all" or r["split"] == split) and (r["valid"] or not valid_only)]
@@ -78,12 +127,14 @@ class HeadDataset(torch.utils.data.Dataset):
         return len(self.records)
 
     def __getitem__(self, i: int) -> dict:
-        from PIL import Image
-
         r = self.records[i]
         t = r["index"]
-        image = torch.from_numpy(np.asarray(Image.open(self.root / r["image"]).convert("RGB"), np.float32) / 255)
-        mask = torch.from_numpy(np.asarray(Image.open(self.root / r["mask"]), np.float32) / 255)
+        image = torch.from_numpy(read_image(self.root / r["image"]))
+        mask = torch.from_numpy(read_image(self.root / r["mask"], grey=True))
+        size = self.meta["resolution"]
+        if image.shape[:2] != (size, size) or mask.shape != (size, size):
+            wrong = r["image"] if image.shape[:2] != (size, size) else r["mask"]
+            raise HeadforgeError(f"{self.root / wrong} is not {size}x{size} as dataset.json says")
         item = {"index": t, "image": image, "mask": mask, "landmarks": self.tracking["landmarks"][t],
                 "shape": self.tracking["shape"][0]}
         for key in ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation"):
@@ -107,7 +158,8 @@ def head_to_camera(root_pose: np.ndarray, translation: np.ndarray, root_joint: n
 def export_transforms(root: str | Path, root_joint: np.ndarray) -> dict:
     """NeRF-style ``transforms.json`` in the head's canonical frame: per frame the camera pose
     that sees the (static) canonical head as the real camera saw the moving head."""
-    return transforms_from(read_meta(root), load_file(str(Path(root) / "tracking.safetensors")), root_joint)
+    meta = read_meta(root)
+    return transforms_from(meta, load_tracking(root, meta), root_joint)
 
 
 def transforms_from(meta: dict, tracking: dict, root_joint: np.ndarray) -> dict:

@@ -67,15 +67,26 @@ class SynthConfig:
     def paper(cls) -> "SynthConfig":
         return cls()
 
+    MAX_RESOLUTION = 4096
+    MAX_SUPERSAMPLE = 8
+
     def validate(self) -> None:
-        if self.subjects < 1 or self.train_frames < 1 or self.val_frames < 1:
-            raise HeadforgeError("--subjects, --train-frames and --val-frames must be >= 1")
-        if self.resolution < 64:
-            raise HeadforgeError(f"--resolution must be >= 64, got {self.resolution}")
+        """One-line errors naming the option, before any work is done."""
+        for option, value in (("--subjects", self.subjects), ("--train-frames", self.train_frames),
+                              ("--val-frames", self.val_frames)):
+            if value < 1:
+                raise HeadforgeError(f"{option} must be >= 1, got {value}")
+        if not 64 <= self.resolution <= self.MAX_RESOLUTION:
+            raise HeadforgeError(f"--resolution must be in [64, {self.MAX_RESOLUTION}], got {self.resolution}")
+        if self.seed < 0:
+            raise HeadforgeError(f"--seed must be >= 0, got {self.seed}")
         if self.gt_every < 1:
             raise HeadforgeError(f"--gt-every must be >= 1, got {self.gt_every}")
-        if self.supersample < 1:
-            raise HeadforgeError(f"supersample must be >= 1, got {self.supersample}")
+        if gt_frames(self).max() < self.train_frames:
+            raise HeadforgeError(f"--gt-every {self.gt_every} leaves no ground-truth frame among the validation frames "
+                                 f"{self.train_frames}..{self.train_frames + self.val_frames - 1}")
+        if not 1 <= self.supersample <= self.MAX_SUPERSAMPLE:
+            raise HeadforgeError(f"--supersample must be in [1, {self.MAX_SUPERSAMPLE}], got {self.supersample}")
 
     @property
     def camera_t(self) -> np.ndarray:
@@ -659,7 +670,7 @@ def synthesize(output: str | Path, config: SynthConfig, log=print, progress_fact
                               progress=bar(f"{name}: rendering ({subject.hair_style} hair)", config.train_frames + config.val_frames))
         t1 = time.perf_counter()
         K = np.asarray(info["intrinsics"])
-        options = TrackOptions(resolution=config.resolution, crop="full", focal=float(K[0, 0]),
+        options = TrackOptions(resolution=config.resolution, crop="full", focal=float(K[0, 0]), fps=FPS,
                                masks=str(render_dir / "masks"),
                                val_fraction=config.val_frames / (config.train_frames + config.val_frames))
         metrics = track_video(render_dir / "frames", final, options, log=log, progress_factory=progress_factory)

@@ -1,7 +1,9 @@
 """Video decoding with PyAV (rotation metadata honoured), or a folder of numbered images.
 
-A folder source (``frames/00000.png``, ... sorted by name; PNG/JPEG) behaves like a video at
-30 fps: what ``headforge synth`` renders, or frames a user exported from another tool.
+A folder source (``frames/00000.png``, ... sorted by name; PNG/JPEG, all of one size) behaves
+like a video at :data:`FOLDER_FPS` (a folder has no rate of its own: ``headforge track`` takes
+the real one as an option): what ``headforge synth`` renders, or frames a user exported from
+another tool.
 """
 
 from __future__ import annotations
@@ -14,11 +16,14 @@ from headforge.errors import HeadforgeError
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
+FOLDER_FPS = 30.0  # the frame rate assumed for a folder of frames
 
 
 def image_files(folder: str | Path) -> list[Path]:
     """The images of a frame folder, sorted by name; an error if there are none."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise HeadforgeError(f"not a folder: {folder}")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
     if not files:
         raise HeadforgeError(f"no PNG/JPEG frames in folder {folder}")
@@ -59,7 +64,7 @@ def video_info(path: str | Path) -> dict:
     if path.is_dir():
         files = image_files(path)
         h, w = _read_image(files[0]).shape[:2]
-        return {"fps": 30.0, "frames": len(files), "width": w, "height": h}
+        return {"fps": FOLDER_FPS, "frames": len(files), "width": w, "height": h}
     _check_file(path)
     try:
         with av.open(str(path)) as container:
@@ -84,10 +89,16 @@ def iter_frames(path: str | Path, every: int = 1, max_frames: int | None = None)
     if every < 1:
         raise HeadforgeError(f"--every must be >= 1, got {every}")
     if path.is_dir():
+        size = None
         for count, i in enumerate(range(0, len(files := image_files(path)), every)):
             if max_frames is not None and count >= max_frames:
                 return
-            yield i, _read_image(files[i])
+            image = _read_image(files[i])
+            size = size or image.shape[:2]
+            if image.shape[:2] != size:
+                raise HeadforgeError(f"{files[i]} is {image.shape[1]}x{image.shape[0]}, the frames before it in "
+                                     f"{path} are {size[1]}x{size[0]}")
+            yield i, image
         return
     _check_file(path)
     count = 0

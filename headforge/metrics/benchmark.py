@@ -40,6 +40,7 @@ import trimesh
 from safetensors.numpy import load_file
 
 from headforge.errors import HeadforgeError
+from headforge.paths import make_folder
 from headforge.metrics.geometry import normal_angle_error, normal_consistency, one_sided_hausdorff
 
 
@@ -55,16 +56,14 @@ class PredictedGeometry:
 
 def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeometry:
     """The tracked head model of a ``headforge track`` dataset at ``frames`` (camera space)."""
-    from safetensors.torch import load_file as load_torch
-
-    from headforge.data.dataset import read_meta
+    from headforge.data.dataset import load_tracking, read_meta
     from headforge.head import load_data
     from headforge.head.model import HeadModel
     from headforge.track.tracker import FLIP, FRAME_PARAMS
 
     dataset = Path(dataset)
     meta = read_meta(dataset)
-    tracked = load_torch(str(dataset / "tracking.safetensors"))
+    tracked = load_tracking(dataset, meta)
     data = load_data(meta["model"], None) if meta["model"] == "open-head" else load_data("flame", None)
     head = HeadModel(data)
     T = tracked["translation"].shape[0]
@@ -88,12 +87,33 @@ def exported_geometry(folder: str | Path) -> PredictedGeometry:
     path = Path(folder) / "geometry.safetensors"
     if not path.is_file():
         raise HeadforgeError(f"{folder} has neither tracking.safetensors nor geometry.safetensors")
-    g = load_file(str(path))
-    for key in ("frames", "vertices", "faces", "face_vertices", "head_vertices"):
-        if key not in g:
-            raise HeadforgeError(f"{path} lacks '{key}'")
+    g = _load_arrays(path, ("frames", "vertices", "faces", "face_vertices", "head_vertices"))
+    N, V = len(g["frames"]), g["vertices"].shape[1] if g["vertices"].ndim == 3 else -1
+    if g["vertices"].shape != (N, V, 3) or g["faces"].ndim != 2 or g["faces"].shape[1:] != (3,):
+        raise HeadforgeError(f"{path}: vertices {g['vertices'].shape} and faces {g['faces'].shape} are not "
+                             f"(frames={N}, V, 3) and (F, 3)")
+    if len(g["faces"]) and not 0 <= g["faces"].min() <= g["faces"].max() < V:
+        raise HeadforgeError(f"{path}: faces index vertices outside 0..{V - 1}")
+    if g["face_vertices"].shape != (V,) or g["head_vertices"].shape != (V,):
+        raise HeadforgeError(f"{path}: face_vertices / head_vertices must be ({V},) vertex masks")
     return PredictedGeometry(g["frames"], g["vertices"], g["faces"], g["face_vertices"].astype(bool),
                              g["head_vertices"].astype(bool), str(folder))
+
+
+def _load_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """A safetensors file's arrays; a one-line error when it is unreadable or lacks a key."""
+    try:
+        arrays = load_file(str(path))
+    except Exception as exc:  # SafetensorError, OSError, ...
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise HeadforgeError(f"{path} is unreadable (truncated or not safetensors: {reason})") from None
+    missing = [key for key in keys if key not in arrays]
+    if missing:
+        raise HeadforgeError(f"{path} lacks {', '.join(repr(k) for k in missing)}")
+    return arrays
+
+
+SUBJECT_KEYS = ("train_frames", "intrinsics", "resolution", "labels", "head_labels", "subject")
 
 
 def _read_png(path: Path, flags) -> np.ndarray:
@@ -112,10 +132,20 @@ def load_subject_gt(subject: Path) -> tuple[dict, dict]:
     gt_path, info_path = subject / "gt" / "geometry.safetensors", subject / "gt" / "subject.json"
     if not gt_path.is_file() or not info_path.is_file():
         raise HeadforgeError(f"{subject} is not a headforge synth subject (gt/geometry.safetensors or gt/subject.json missing)")
-    gt = load_file(str(gt_path))
+    gt = _load_arrays(gt_path, ("frames", "vertices", "faces", "labels"))
     if len(gt["faces"]) == 0:
         raise HeadforgeError(f"{gt_path}: the ground-truth mesh has no faces")
-    return gt, json.loads(info_path.read_text())
+    if gt["vertices"].ndim != 3 or len(gt["vertices"]) != len(gt["frames"]) or len(gt["labels"]) != gt["vertices"].shape[1]:
+        raise HeadforgeError(f"{gt_path}: vertices {gt['vertices'].shape}, frames {gt['frames'].shape} and labels "
+                             f"{gt['labels'].shape} do not agree")
+    try:
+        info = json.loads(info_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise HeadforgeError(f"{info_path} is not valid JSON: {exc}") from None
+    missing = [key for key in SUBJECT_KEYS if key not in info]
+    if missing:
+        raise HeadforgeError(f"{info_path} lacks {', '.join(repr(k) for k in missing)}")
+    return gt, info
 
 
 def prediction_rows(prediction: PredictedGeometry, frames: np.ndarray, source: Path) -> np.ndarray:
@@ -136,7 +166,10 @@ def read_gt_maps(subject: Path, frame: int, resolution: int) -> tuple[np.ndarray
     """A synth subject's GT maps of ``frame``: (R, R, 3) camera-space normals (as stored, unit
     length where covered, 0 elsewhere) and (R, R) uint8 segmentation labels."""
     name = f"{frame:05d}.png"
-    normals = _read_png(subject / "gt" / "normals" / name, -1)[..., ::-1].astype(np.float32) / 255 * 2 - 1
+    normals = _read_png(subject / "gt" / "normals" / name, -1)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise HeadforgeError(f"{subject / 'gt' / 'normals' / name} is not an RGB normal map")
+    normals = normals[..., ::-1].astype(np.float32) / 255 * 2 - 1
     labels = _read_png(subject / "gt" / "labels" / name, 0)
     if normals.shape[:2] != (resolution, resolution) or labels.shape != (resolution, resolution):
         raise HeadforgeError(f"{subject / 'gt' / 'normals' / name} does not match the resolution {resolution}")
@@ -388,7 +421,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
 def write_geometry_report(result: dict, out_dir: Path) -> None:
     from headforge.render.io import write_png
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(out_dir)
     maps = result.pop("error_maps")
     views = result.pop("views", None)
     (out_dir / "metrics.json").write_text(json.dumps(result, indent=1))

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
+from headforge.paths import make_folder
 from headforge.metrics import image as im
 
 SUFFIXES = {".png", ".jpg", ".jpeg"}
@@ -36,6 +37,8 @@ def _files(folder: Path) -> dict[str, Path]:
 
 
 def evaluate_folders(pred_dir: Path, gt_dir: Path, mask_dir: Path | None = None) -> dict:
+    if mask_dir is not None and not mask_dir.is_dir():
+        raise HeadforgeError(f"--masks folder not found: {mask_dir}")
     gt_files, pred_files = _files(gt_dir), _files(pred_dir)
     if not gt_files:
         raise HeadforgeError(f"no images in {gt_dir}")
@@ -80,7 +83,7 @@ def evaluate_folders(pred_dir: Path, gt_dir: Path, mask_dir: Path | None = None)
 def write_report(result: dict, out_dir: Path) -> None:
     from headforge.render.io import write_png
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(out_dir)
     rows = result.pop("grid_rows")
     (out_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     lines = [f"Evaluated {result['images']} images (every ground-truth image; none skipped).", "",

@@ -25,11 +25,20 @@ def to_uint8(image: np.ndarray | torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(image[..., :3])
 
 
+def _make_parent(path: Path) -> None:
+    if path.is_dir():
+        raise HeadforgeError(f"cannot write {path}: it is a folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file where a folder should be, no permission
+        raise HeadforgeError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
 def write_png(path: str | Path, image: np.ndarray | torch.Tensor) -> Path:
     from PIL import Image
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = path.with_name(path.name + ".partial.png")
     try:
         Image.fromarray(to_uint8(image)).save(tmp)
@@ -44,13 +53,19 @@ def write_mp4(path: str | Path, frames: Iterable[np.ndarray | torch.Tensor], fps
               total: int | None = None, description: str = "writing video", crf: int = 18) -> Path:
     """Encode frames (H, W, 3) in [0, 1] or uint8 to H.264 MP4 with a progress bar.
 
-    Frame sizes are padded to even numbers (yuv420p needs them).
+    Frame sizes are padded to even numbers (yuv420p needs them). ``fps`` is kept exactly as a
+    fraction (25, 29.97, 12.5, ...).
     """
+    from fractions import Fraction
+
     import av
     from rich.progress import Progress
 
+    if not 0 < fps <= 1000:
+        raise HeadforgeError(f"fps must be in (0, 1000], got {fps}")
+    rate = Fraction(fps).limit_denominator(1001)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = path.with_name(path.name + ".partial.mp4")
     stream = None
     count = 0
@@ -61,7 +76,7 @@ def write_mp4(path: str | Path, frames: Iterable[np.ndarray | torch.Tensor], fps
                 image = to_uint8(frame)
                 h, w = image.shape[:2]
                 if stream is None:
-                    stream = container.add_stream("libx264", rate=round(fps))
+                    stream = container.add_stream("libx264", rate=rate)
                     stream.width, stream.height = w + w % 2, h + h % 2
                     stream.pix_fmt = "yuv420p"
                     stream.options = {"crf": str(crf)}

@@ -7,6 +7,10 @@ Steps, each checkpointed in ``DATASET.partial/`` so an interrupted run resumes:
      with ``photometric``, refined against the crops with the renderer)
   4. overlay.mp4      streamed frame by frame
   5. dataset.json, metrics.json, transforms.json; then the folder is renamed
+
+Every option is checked before any work (``TrackOptions.validate``). The dataset's ``fps`` is
+the source's rate divided by ``every``: the video's own rate, or for a folder of frames
+``TrackOptions.fps`` (default :data:`FOLDER_FPS`); ``fps`` given for a video overrides its rate.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from safetensors.torch import load_file, save_file
 
 from headforge.data import dataset as ds
 from headforge.data.preprocess import ClipDetections, Segmenter, crop, crop_windows, detect_clip, transform_points
-from headforge.data.video import image_files, iter_frames, video_info
+from headforge.data.video import FOLDER_FPS, image_files, iter_frames, video_info
 from headforge.errors import HeadforgeError
 from headforge.paths import open_partial
 from headforge.head.landmarks import LandmarkSpec
@@ -48,20 +52,34 @@ class TrackOptions:
     crop: str = "face"  # "face": a smooth window around the face; "full": the whole (square) frame
     masks: str | None = None  # folder of foreground masks named like the frames (instead of selfie segmentation)
     photometric: bool = False  # refine the landmark fit against the crops with the renderer
+    fps: float | None = None  # frame rate of the source: a video's own when None, FOLDER_FPS for a folder
+
+    MAX_RESOLUTION = 4096
 
     def validate(self) -> None:
-        if self.resolution < 64:
-            raise HeadforgeError(f"--resolution must be >= 64, got {self.resolution}")
-        if not 0 <= self.val_fraction < 1:
+        """One-line errors naming the option, before any work is done."""
+        from headforge.head import MODEL_NAMES
+
+        if self.model not in MODEL_NAMES:
+            raise HeadforgeError(f"--model must be one of {', '.join(MODEL_NAMES)}, got {self.model!r}")
+        if not 64 <= self.resolution <= self.MAX_RESOLUTION:
+            raise HeadforgeError(f"--resolution must be in [64, {self.MAX_RESOLUTION}], got {self.resolution}")
+        if self.every < 1:
+            raise HeadforgeError(f"--every must be >= 1, got {self.every}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise HeadforgeError(f"--max-frames must be >= 1, got {self.max_frames}")
+        if not 0 <= self.val_fraction < 1:  # also false for NaN
             raise HeadforgeError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
         if self.preset not in ("quick", "paper"):
             raise HeadforgeError(f"--preset must be quick or paper, got {self.preset!r}")
+        if self.focal is not None and not 0 < self.focal < float("inf"):
+            raise HeadforgeError(f"--focal must be a positive number of crop pixels, got {self.focal}")
         if self.crop not in ("face", "full"):
             raise HeadforgeError(f"--crop must be face or full, got {self.crop!r}")
         if self.masks is not None and not Path(self.masks).is_dir():
-            raise HeadforgeError(f"mask folder not found: {self.masks}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise HeadforgeError(f"--max-frames must be >= 1, got {self.max_frames}")
+            raise HeadforgeError(f"--masks folder not found: {self.masks}")
+        if self.fps is not None and not 0 < self.fps < float("inf"):
+            raise HeadforgeError(f"--fps must be > 0, got {self.fps}")
 
 
 def track_video(video: str | Path, output: str | Path, options: TrackOptions = TrackOptions(), log=print,
@@ -74,6 +92,10 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     start = time.perf_counter()
     video, output = Path(video), Path(output)
     info = video_info(video)
+    source_fps = options.fps or (FOLDER_FPS if video.is_dir() else info["fps"])
+    fps = source_fps / options.every
+    if options.masks is not None:
+        _check_masks(video, options, info)
     settings = {"video": str(video.resolve()), "size": video.stat().st_size, **asdict(options)}
     settings.pop("overlay")
     work = open_partial(output, settings, log)
@@ -81,9 +103,8 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
 
     # 1. landmarks
     det_path = work / "detections.npz"
-    if det_path.is_file():
-        det = ClipDetections.load(det_path)
-    else:
+    det = _load_checkpoint(det_path, ClipDetections.load, log)
+    if det is None:
         expected = info["frames"] // options.every if info["frames"] else None
         if expected and options.max_frames:
             expected = min(expected, options.max_frames)
@@ -116,7 +137,15 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         mask_files = image_files(options.masks)
 
         def segment(image, t=None):
-            return cv2.imread(str(mask_files[t]), cv2.IMREAD_GRAYSCALE)
+            if t >= len(mask_files):
+                raise HeadforgeError(f"--masks folder {options.masks} has no mask for frame {t}")
+            mask = cv2.imread(str(mask_files[t]), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise HeadforgeError(f"cannot read mask {mask_files[t]}")
+            if mask.shape != image.shape[:2]:
+                raise HeadforgeError(f"mask {mask_files[t]} is {mask.shape[1]}x{mask.shape[0]}, frame {t} is "
+                                     f"{image.shape[1]}x{image.shape[0]}")
+            return mask
     advance = bar("crops and masks", T)
     with ThreadPoolExecutor(max_workers=2) as pool:
         jobs = []
@@ -142,9 +171,10 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     head = HeadModel(data)
     track_path = work / "tracking.safetensors"
     track_start = time.perf_counter()
-    if track_path.is_file():
-        tracked = load_file(str(track_path))
-        K = np.asarray(json.loads((work / "camera.json").read_text())["K"])
+    checkpoint = _load_checkpoint(track_path, lambda p: (load_file(str(p)),
+                                                         np.asarray(json.loads((work / "camera.json").read_text())["K"])), log)
+    if checkpoint is not None:
+        tracked, K = checkpoint
     else:
         config = TrackerConfig.paper() if options.preset == "paper" else TrackerConfig.quick()
         config.focal = options.focal
@@ -186,7 +216,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         frames_in = ((t, crop(image, windows[t], res))
                      for t, (_, image) in enumerate(iter_frames(video, options.every, options.max_frames)) if t < T)
         write_mp4(work / "overlay.mp4", (_draw_overlay(f, lmk[t], projected_all[t], verts[t], head, K, det.valid[t])
-                                         for t, f in frames_in), fps=30.0 / options.every, total=T,
+                                         for t, f in frames_in), fps=fps, total=T,
                   description="overlay video")
 
     # 5. metadata
@@ -195,7 +225,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
                "split": "val" if t >= T - n_val else "train", "image": f"frames/{t:05d}.png",
                "mask": f"masks/{t:05d}.png", "crop": [round(float(v), 3) for v in windows[t]]} for t in range(T)]
     meta = {"format": ds.FORMAT, "version": ds.VERSION, "model": data.name, "n_shape": int(tracked["shape"].shape[1]),
-            "expression_names": data.expression_names, "resolution": res, "fps": 30.0 / options.every,
+            "expression_names": data.expression_names, "resolution": res, "fps": fps,
             "video": str(video), "intrinsics": np.asarray(K).tolist(),
             "camera": "OpenCV pinhole at the origin; head vertex x -> diag(1,-1,-1) x + translation",
             "frames": frames}
@@ -219,6 +249,32 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         shutil.rmtree(output)
     work.replace(output)
     return metrics
+
+
+def _load_checkpoint(path: Path, load, log):
+    """``load(path)`` of a checkpoint in the work folder, or None when it is absent or unreadable
+    (a run killed while writing it, a disk error): that step is then redone."""
+    if not path.is_file():
+        return None
+    try:
+        return load(path)
+    except Exception as exc:  # numpy, safetensors, JSON: any failure means "redo the step"
+        log(f"{path} is unreadable ({type(exc).__name__}): redoing that step")
+        path.unlink(missing_ok=True)
+        return None
+
+
+def _check_masks(video: Path, options: TrackOptions, info: dict) -> None:
+    """A --masks folder needs one mask per source frame, of the frames' size (read: the first)."""
+    masks = image_files(options.masks)
+    if info["frames"] and len(masks) < info["frames"]:
+        raise HeadforgeError(f"--masks folder {options.masks} has {len(masks)} images, {video} has {info['frames']} frames")
+    first = cv2.imread(str(masks[0]), cv2.IMREAD_GRAYSCALE)
+    if first is None:
+        raise HeadforgeError(f"cannot read mask {masks[0]}")
+    if first.shape != (info["height"], info["width"]):
+        raise HeadforgeError(f"mask {masks[0]} is {first.shape[1]}x{first.shape[0]}, the frames of {video} are "
+                             f"{info['width']}x{info['height']}")
 
 
 def _write_pair(frame_path: Path, rgb: np.ndarray, mask_path: Path, mask: np.ndarray) -> None:
