@@ -108,3 +108,65 @@ def interrupt_after():
         return progress
 
     return make
+
+
+def write_rendered_dataset(root: Path, data, frames: int = 8, val: int = 3, resolution: int = 96, seed: int = 0) -> Path:
+    """A tiny headforge dataset rendered from the head model ``data`` with known parameters,
+    without MediaPipe (deterministic on a host): normal-shaded crops, coverage masks and the
+    model's own landmarks as the detections. The head turns and talks a little; camera OpenCV
+    at the origin, head at about 0.6 m."""
+    import json
+
+    import torch
+    from PIL import Image
+    from safetensors.torch import save_file
+
+    from headforge.head.model import HeadModel
+    from headforge.render import mesh
+    from headforge.render.camera import Cameras
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "frames").mkdir(exist_ok=True)
+    (root / "masks").mkdir(exist_ok=True)
+    head = HeadModel(data)
+    g = torch.Generator().manual_seed(seed)
+    T = frames
+    phase = torch.linspace(0, 2 * np.pi, T)[:, None]
+    with torch.no_grad():
+        centre = head().vertices[0].mean(0)
+    flip = torch.tensor([1.0, -1.0, -1.0])
+    tracked = {"shape": 0.5 * torch.randn(1, head.n_shape, generator=g),
+               "expression": 0.3 * torch.sin(phase + torch.arange(head.n_expr)) * (torch.arange(head.n_expr) < 8),
+               "root_pose": torch.cat([0.05 * torch.sin(phase), 0.2 * torch.sin(phase), torch.zeros(T, 1)], 1),
+               "neck_pose": torch.zeros(T, 3), "jaw_pose": torch.cat([0.1 + 0.1 * torch.sin(phase), torch.zeros(T, 2)], 1),
+               "eye_left_pose": torch.zeros(T, 3), "eye_right_pose": torch.zeros(T, 3),
+               "translation": (-centre * flip + torch.tensor([0.0, 0.0, 0.6])).expand(T, 3).clone()}
+    focal = 2.4 * resolution
+    K = torch.tensor([[focal, 0, (resolution - 1) / 2], [0, focal, (resolution - 1) / 2], [0, 0, 1.0]])
+    with torch.no_grad():
+        out = head(shape=tracked["shape"].expand(T, -1), **{k: v for k, v in tracked.items() if k not in ("shape", "translation")})
+        verts = out.vertices * flip + tracked["translation"][:, None]
+        lmk = out.landmarks * flip + tracked["translation"][:, None]
+        cams = Cameras(K.expand(T, 3, 3), torch.eye(3).expand(T, 3, 3), torch.zeros(T, 3), resolution, resolution)
+        frags = mesh.rasterize(cams, verts, head.faces)
+        from headforge.head.topology import vertex_normals
+
+        normals = mesh.interpolate(vertex_normals(verts, head.faces), frags, head.faces)
+        shade = (0.3 + 0.6 * (-normals[..., 2:]).clamp(min=0)) * torch.tensor([0.9, 0.7, 0.6])
+        hit = frags.face_id >= 0
+        rgb = torch.where(hit[..., None], shade, torch.ones(3))
+    tracked["landmarks"] = (lmk[..., :2] / lmk[..., 2:] * focal + K[:2, 2]).float()
+    tracked["valid"] = torch.ones(T, dtype=torch.bool)
+    records = []
+    for t in range(T):
+        Image.fromarray((rgb[t].numpy() * 255).round().astype(np.uint8)).save(root / "frames" / f"{t:05d}.png")
+        Image.fromarray(hit[t].numpy().astype(np.uint8) * 255).save(root / "masks" / f"{t:05d}.png")
+        records.append({"index": t, "source_frame": t, "valid": True, "split": "val" if t >= T - val else "train",
+                        "image": f"frames/{t:05d}.png", "mask": f"masks/{t:05d}.png",
+                        "crop": [resolution / 2, resolution / 2, resolution]})
+    save_file({k: v.contiguous() for k, v in tracked.items()}, str(root / "tracking.safetensors"))
+    meta = {"format": "headforge-dataset", "version": 1, "model": data.name, "n_shape": head.n_shape,
+            "expression_names": list(data.expression_names), "resolution": resolution, "fps": 25.0,
+            "intrinsics": K.tolist(), "camera": "OpenCV pinhole at the origin", "frames": records}
+    (root / "dataset.json").write_text(json.dumps(meta))
+    return root

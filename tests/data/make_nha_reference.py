@@ -1,0 +1,62 @@
+"""Record the NHA reference losses the platform move is checked against (tests/test_platform.py).
+
+Run once with the code *before* a change that must not alter NHA's training:
+
+    python tests/data/make_nha_reference.py
+
+It renders the tiny dataset of ``tests/conftest.py::write_rendered_dataset`` (no MediaPipe),
+trains NHA for 50 iterations with ``reference_config()`` and writes every energy evaluation
+(training steps, per-frame alignment, in-training validation and test-time fitting, in call
+order) at full precision to ``nha_reference_losses.json``. Recorded at commit 64909a8, before the
+avatar platform existed.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+
+def reference_settings() -> dict:
+    """The tiny NHA run of the reference: quick preset fields changed to these values."""
+    return {"resolution": 64, "geometry_iters": 16, "texture_iters": 17, "joint_iters": 17, "align_steps": 2,
+            "val_every": 25, "val_frames": 2, "val_tto_steps": 1, "tto_steps": 2, "checkpoint_every": 25,
+            "tex_grid": 32, "geo_width": 32, "tex_width": 32, "tex_channels": 8, "tex_layers": 2}
+
+
+def main() -> None:
+    import torch
+
+    from conftest import write_rendered_dataset
+    from headforge.avatars.nha import trainer
+    from headforge.head.open_head import load_open_head
+
+    config = trainer.NHAConfig.quick()
+    for k, v in reference_settings().items():
+        setattr(config, k, v)
+    calls = []
+    original = trainer.losses
+
+    def recording(*args, **kwargs):
+        terms = original(*args, **kwargs)
+        calls.append({k: float(v.detach()) for k, v in terms.items()})
+        return terms
+
+    trainer.losses = recording
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        dataset = write_rendered_dataset(Path(tmp) / "data", load_open_head())
+        metrics = trainer.fit(dataset, Path(tmp) / "run", config, log=lambda m: None)
+    out = {"commit": "64909a8", "settings": reference_settings(), "calls": calls,
+           "val_psnr": metrics["val_psnr"]}
+    (HERE / "nha_reference_losses.json").write_text(json.dumps(out))
+    print(f"{len(calls)} energy evaluations, val PSNR {metrics['val_psnr']}")
+
+
+if __name__ == "__main__":
+    main()
