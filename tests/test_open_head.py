@@ -34,8 +34,27 @@ def test_axis_conversion_is_a_rotation():
 
 
 def test_recipe_digest_names_the_cache():
-    assert OpenHeadRecipe().digest() == OpenHeadRecipe().digest()
-    assert OpenHeadRecipe(n_samples=10).digest() != OpenHeadRecipe().digest()
+    """The cache file is named by a digest of every recipe field, the same in any interpreter
+    (nothing process-dependent, e.g. hash randomisation, goes into it)."""
+    from dataclasses import fields, replace
+
+    from headforge.head.open_head import cache_path
+
+    recipe = OpenHeadRecipe()
+    digest = recipe.digest()
+    assert len(digest) == 12 and int(digest, 16) >= 0
+    code = "from headforge.head.open_head import OpenHeadRecipe; print(OpenHeadRecipe().digest())"
+    other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           env={**__import__("os").environ, "PYTHONHASHSEED": "12345"})
+    assert other.returncode == 0 and other.stdout.strip() == digest, other.stderr
+    changed = {int: lambda v: v + 1, float: lambda v: v * 1.5 + 0.1, str: lambda v: v + ".post1",
+               tuple: lambda v: tuple(x + 0.05 for x in v)}
+    for field in fields(OpenHeadRecipe):
+        value = getattr(recipe, field.name)
+        other = replace(recipe, **{field.name: changed[type(value)](value)})
+        assert other.digest() != digest, field.name
+        assert cache_path(other) != cache_path(recipe), field.name
+    assert cache_path(recipe).name == f"open-head-v{recipe.recipe_version}-{digest}.safetensors"
 
 
 def test_open_head_contents(open_head_data, open_head):
@@ -62,12 +81,29 @@ def test_open_head_contents(open_head_data, open_head):
     assert gap(open_head(expression=blink)).mean() < 0.5 * gap(open_head()).mean()
 
 
-def test_landmark_embedding_quality_recorded(open_head_data):
+def test_landmark_embedding_quality_measured(open_head_data):
+    """MediaPipe on 27 held-out renders (3 identities x 3 expressions x 3 views) at 256 px
+    against the projected embedded landmarks (about 6 s). Measured 1.45 px median (2.82 px at
+    the build's 512 px); the bound, 1.8 px, is 3.6 px at 512."""
+    from headforge.head.landmarks import evaluate_embedding
+
     meta = open_head_data.meta["landmarks"]
-    assert meta["kind"] == "mediapipe-478" and meta["renders_used"] >= 0.8 * meta["renders"]
-    assert meta["landmark_median_px"] == meta["heldout"]["landmark_median_px"] < 4.0  # measured 3.15 px
-    assert meta["heldout"]["renders_used"] >= 0.8 * meta["heldout"]["renders_tested"]
-    assert len(meta["mediapipe_to_ibug68"]) == 68
+    assert meta["kind"] == "mediapipe-478" and len(meta["mediapipe_to_ibug68"]) == 68
+    error = evaluate_embedding(open_head_data, resolution=256)
+    assert error["renders_used"] >= 0.8 * error["renders_tested"] == 0.8 * 27
+    assert error["landmark_median_px"] < 1.8, error
+    assert error["landmark_median_px_inner"] < error["landmark_p90_px"]
+
+
+@pytest.mark.slow
+def test_landmark_embedding_figure_recorded_by_the_build_is_reproduced(open_head_data):
+    """The build records the held-out median at 512 px (what ``headforge model info`` reports):
+    measuring it again gives the same figure (2.82 px on the hosts of 2026-12; about 30 s)."""
+    from headforge.head.landmarks import evaluate_embedding
+
+    recorded = open_head_data.meta["landmarks"]["heldout"]["landmark_median_px"]
+    error = evaluate_embedding(open_head_data, resolution=512)
+    assert error["landmark_median_px"] == pytest.approx(recorded, abs=0.05) and error["landmark_median_px"] < 3.5
 
 
 def test_ibug68_subset_is_anatomically_ordered(open_head):
