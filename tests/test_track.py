@@ -157,6 +157,7 @@ def test_track_command_with_gaps_resume_and_dataset(synthetic, tmp_path, monkeyp
     assert metrics["landmark_median_px"] < 3.0
     assert 0 < metrics["photometric_l1"] < 0.15  # colour error (sum over RGB) on the face pixels
     meta = json.loads((out / "dataset.json").read_text())
+    assert meta["fps"] == 10.0  # the clip's own rate
     assert [f["valid"] for f in meta["frames"][6:9]] == [False] * 3
     assert [f["split"] for f in meta["frames"]].count("val") == 3
     train, val = HeadDataset(out, "train"), HeadDataset(out, "val")
@@ -167,6 +168,33 @@ def test_track_command_with_gaps_resume_and_dataset(synthetic, tmp_path, monkeyp
     assert (out / "overlay.mp4").is_file() and (out / "metrics.json").is_file()
     transforms = json.loads((out / "transforms.json").read_text())
     assert len(transforms["frames"]) == 15 and transforms["frames"][0]["w"] == 128
+
+
+def test_dataset_fps_is_the_sources_rate(synthetic, tmp_path, monkeypatch):
+    """A 25 fps clip tracked with --every 2 is a 12.5 fps dataset (and overlay); a folder of
+    frames has the rate it is given (FOLDER_FPS when none). The fit's quality is not what is
+    tested: a short fit keeps this at seconds."""
+    import av
+
+    from headforge.data.video import FOLDER_FPS, video_info
+    from headforge.track.pipeline import TrackOptions, dataset_fps, track_video
+    from headforge.track.tracker import TrackerConfig
+
+    monkeypatch.setattr(TrackerConfig, "quick", classmethod(lambda cls: cls(rigid_steps=10, steps=10)))
+    _, frames, _, _, _ = synthetic
+    video = tmp_path / "clip25.mp4"
+    _write_video(video, frames[:6], fps=25)
+    track_video(video, tmp_path / "ds", TrackOptions(resolution=128, every=2), log=lambda m: None)
+    assert json.loads((tmp_path / "ds" / "dataset.json").read_text())["fps"] == 12.5
+    with av.open(str(tmp_path / "ds" / "overlay.mp4")) as container:
+        assert container.streams.video[0].average_rate == 12.5
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    (folder / "00000.png").write_bytes((tmp_path / "ds" / "frames" / "00000.png").read_bytes())
+    info = video_info(folder)
+    assert dataset_fps(folder, TrackOptions(), info) == FOLDER_FPS == 30.0
+    assert dataset_fps(folder, TrackOptions(fps=25.0, every=5), info) == 5.0
+    assert dataset_fps(video, TrackOptions(fps=24.0), video_info(video)) == 24.0  # an override wins
 
 
 def test_transforms_reproduce_the_tracked_projection(tmp_path, open_head):

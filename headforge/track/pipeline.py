@@ -92,8 +92,7 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
     start = time.perf_counter()
     video, output = Path(video), Path(output)
     info = video_info(video)
-    source_fps = options.fps or (FOLDER_FPS if video.is_dir() else info["fps"])
-    fps = source_fps / options.every
+    fps = dataset_fps(video, options, info)
     if options.masks is not None:
         _check_masks(video, options, info)
     settings = {"video": str(video.resolve()), "size": video.stat().st_size, **asdict(options)}
@@ -249,6 +248,13 @@ def track_video(video: str | Path, output: str | Path, options: TrackOptions = T
         shutil.rmtree(output)
     work.replace(output)
     return metrics
+
+
+def dataset_fps(video: Path, options: TrackOptions, info: dict) -> float:
+    """The rate of the kept frames: the source's (``options.fps``, else a video's own rate, a
+    folder's :data:`FOLDER_FPS`) over ``options.every``."""
+    source = options.fps or (FOLDER_FPS if Path(video).is_dir() else info["fps"])
+    return source / options.every
 
 
 def _load_checkpoint(path: Path, load, log):
