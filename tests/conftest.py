@@ -52,6 +52,45 @@ def tiny_head_data(seed: int = 0, with_posedirs: bool = True):
     return data
 
 
+def tiny_nha_head_data(seed: int = 0):
+    """:func:`tiny_head_data` on a finer sphere (V=626, open at the bottom) with what NHA's template reads: named
+    regions (face, scalp, neck, lower_neck, lips, eyeballs) and a fixed 478-point "MediaPipe"
+    landmark embedding on the front. Built from fixed arrays and a seeded generator only, so
+    it is the same on every machine (the open-head build is not bit-identical between builds)."""
+    from dataclasses import replace
+
+    from headforge.head.model import HeadModelData
+
+    base = tiny_head_data(seed, with_posedirs=False)
+    rng = np.random.default_rng(seed + 1)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    sphere.update_faces(sphere.triangles_center[:, 1] > -0.095)  # an open neck at the bottom, as a head model has
+    sphere.remove_unreferenced_vertices()
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces, np.int64)
+    V = len(v)
+    # skinning of the coarse sphere carried to the fine one by nearest coarse vertex
+    near = np.argmin(np.linalg.norm(v[:, None] - base.v_template[None], axis=-1), axis=1)
+    front = np.nonzero((v[f].mean(1)[:, 2] > 0.04) & (np.abs(v[f].mean(1)[:, 1]) < 0.07))[0]
+    regions = {"face": np.nonzero((v[:, 2] > 0.03) & (v[:, 1] > -0.07))[0],
+               "scalp": np.nonzero((v[:, 2] <= 0.03) & (v[:, 1] > -0.05))[0],
+               "neck": np.nonzero(v[:, 1] <= -0.07)[0], "lower_neck": np.nonzero(v[:, 1] < -0.09)[0],
+               "lips": np.nonzero((v[:, 2] > 0.06) & (np.abs(v[:, 1] + 0.04) < 0.01))[0],
+               "eyeballs": base.regions["eyeballs"][:0]}
+    joints = base.j_regressor @ base.v_template
+    regressor = np.zeros((5, V))
+    for j in range(5):
+        regressor[j, np.argsort(np.linalg.norm(v - joints[j], axis=1))[:8]] = 1 / 8
+    data = replace(base, name="tiny-nha", v_template=v, faces=f, uv_faces=f.copy(),
+                   uvs=np.stack([0.5 + np.arctan2(v[:, 0], v[:, 2]) / (2 * np.pi), 0.5 + v[:, 1] / 0.2], 1),
+                   shapedirs=rng.normal(0, 0.003, (V, 3, 4)),
+                   exprdirs=rng.normal(0, 0.002, (V, 3, 3)) * (v[:, 1] < -0.03)[:, None, None],
+                   j_regressor=regressor, weights=base.weights[near], posedirs=None,
+                   landmark_faces=rng.choice(front, 478), landmark_bary=rng.dirichlet(np.ones(3), 478),
+                   regions=regions)
+    data.validate()
+    return data
+
+
 @pytest.fixture
 def tiny_data():
     return tiny_head_data()
@@ -115,6 +154,17 @@ def write_rendered_dataset(root: Path, data, frames: int = 8, val: int = 3, reso
     without MediaPipe (deterministic on a host): normal-shaded crops, coverage masks and the
     model's own landmarks as the detections. The head turns and talks a little; camera OpenCV
     at the origin, head at about 0.6 m."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the same floats whatever the caller's thread count
+    try:
+        return _write_rendered_dataset(root, data, frames, val, resolution, seed)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _write_rendered_dataset(root: Path, data, frames: int, val: int, resolution: int, seed: int) -> Path:
     import json
 
     import torch

@@ -332,3 +332,40 @@ def tbn_frames(vertices: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, u
     tangent = torch.nn.functional.normalize(tangent, dim=-1, eps=1e-12)
     bitangent = torch.cross(normal, tangent, dim=-1)
     return torch.stack([tangent, bitangent, normal], dim=-1)
+
+
+# ---- the neck cut ------------------------------------------------------------------------------
+def boundary_vertices(faces: np.ndarray, V: int) -> np.ndarray:
+    """Vertices on open boundary edges of ``faces`` (F, 3)."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    return np.unique(uniq[counts == 1].ravel())
+
+
+def faces_above_neck_cut(data: HeadModelData) -> np.ndarray:
+    """(F,) bool: the faces NHA's neck cut keeps (those without a ``lower_neck`` vertex; all
+    faces when the model has no such region)."""
+    faces = np.asarray(data.faces)
+    if "lower_neck" not in data.regions:
+        return np.ones(len(faces), bool)
+    lower = np.zeros(len(data.v_template), dtype=bool)
+    lower[data.regions["lower_neck"]] = True
+    return ~lower[faces].any(1)
+
+
+def open_neck_ring(data: HeadModelData, faces: np.ndarray | None = None) -> np.ndarray:
+    """Vertex indices of the open boundary of ``faces`` (default: the template's) on the neck:
+    the neck the template has, down to its end. Falls back to any open boundary."""
+    faces = np.asarray(data.faces) if faces is None else faces
+    V = len(data.v_template)
+    neck = np.zeros(V, dtype=bool)
+    neck[data.regions.get("neck", [])] = True
+    boundary = boundary_vertices(faces, V)
+    ring = boundary[neck[boundary]]
+    return ring if len(ring) else boundary
+
+
+def neck_cut_ring(data: HeadModelData) -> np.ndarray:
+    """Vertex indices of NHA's neck cut (App. A.1): the open boundary that removing the lower
+    neck leaves (the same ring whether or not the template keeps its lower neck)."""
+    return open_neck_ring(data, np.asarray(data.faces)[faces_above_neck_cut(data)])

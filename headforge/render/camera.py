@@ -92,6 +92,14 @@ class Cameras:
         return self.K.shape[0]
 
     @classmethod
+    def at_origin(cls, K: torch.Tensor, batch: int, width: int, height: int | None = None) -> "Cameras":
+        """``batch`` cameras at the origin with OpenCV axes (R = I, t = 0) and intrinsics ``K``
+        (3, 3) or (B, 3, 3): the camera of every headforge dataset, where the head moves."""
+        K = K.expand(batch, 3, 3)
+        return cls(K, torch.eye(3, dtype=K.dtype, device=K.device).expand(batch, 3, 3), K.new_zeros(batch, 3),
+                   width, width if height is None else height)
+
+    @classmethod
     def from_pinhole(cls, cams: list[PinholeCamera], dtype=torch.float32) -> "Cameras":
         if len({(c.width, c.height) for c in cams}) != 1:
             raise ValueError("all cameras of a batch must share one image size")
@@ -167,6 +175,12 @@ class Cameras:
                                 dtype=torch.float64)
         c2w = torch.tensor([f["transform_matrix"] for f in frames], dtype=torch.float64)
         return cls.from_opengl_c2w(c2w, K, width, height)
+
+
+def project_points(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(..., N, 3) camera-space points (OpenCV, z forward) -> (..., N, 2) pixels (centres at
+    integers) with the (3, 3) intrinsics ``K``: x by K[0, 0], y by K[1, 1]."""
+    return points[..., :2] / points[..., 2:] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
 
 
 def scale_intrinsics(K: torch.Tensor, scale: float) -> torch.Tensor:

@@ -4,8 +4,9 @@ Run once with the code *before* a change that must not alter NHA's training:
 
     python tests/data/make_nha_reference.py
 
-It renders the tiny dataset of ``tests/conftest.py::write_rendered_dataset`` (no MediaPipe),
-trains NHA for 50 iterations with ``reference_config()`` and writes every energy evaluation
+It renders the tiny dataset of ``tests/conftest.py::write_rendered_dataset`` (no MediaPipe) of
+the fixed tiny head model ``tiny_nha_head_data`` (an open-head build is not bit-identical between
+builds, so a reference on it would hold on one machine's cache only), trains NHA for 50 iterations with ``reference_config()`` and writes every energy evaluation
 (training steps, per-frame alignment, in-training validation and test-time fitting, in call
 order) at full precision to ``nha_reference_losses.json``. Recorded at commit 64909a8, before the
 avatar platform existed.
@@ -29,12 +30,22 @@ def reference_settings() -> dict:
             "tex_grid": 32, "geo_width": 32, "tex_width": 32, "tex_channels": 8, "tex_layers": 2}
 
 
+def use_tiny_head() -> object:
+    """Make ``headforge.head.load_data("tiny-nha")`` return the tiny NHA head; returns its data."""
+    import headforge.head
+    from conftest import tiny_nha_head_data
+
+    data = tiny_nha_head_data()
+    original = headforge.head.load_data
+    headforge.head.load_data = lambda name="open-head", *a, **k: data if name == data.name else original(name, *a, **k)
+    return data
+
+
 def main() -> None:
     import torch
 
     from conftest import write_rendered_dataset
     from headforge.avatars.nha import trainer
-    from headforge.head.open_head import load_open_head
 
     config = trainer.NHAConfig.quick()
     for k, v in reference_settings().items():
@@ -50,7 +61,7 @@ def main() -> None:
     trainer.losses = recording
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = write_rendered_dataset(Path(tmp) / "data", load_open_head())
+        dataset = write_rendered_dataset(Path(tmp) / "data", use_tiny_head())
         metrics = trainer.fit(dataset, Path(tmp) / "run", config, log=lambda m: None)
     out = {"commit": "64909a8", "settings": reference_settings(), "calls": calls,
            "val_psnr": metrics["val_psnr"]}

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
+from headforge.head.pose import flip_matrix
 from headforge.render import mesh
 from headforge.render.camera import Cameras
 
@@ -22,7 +23,7 @@ def bake_texture(avatar, size: int = 512) -> np.ndarray:
     """(size, size, 3) float texture: T evaluated at every texel's surface point (static
     texture, zero mouth condition; the normal head sees the neutral head's normal as seen by a
     frontal camera, as a flat patch); texels outside the UV islands are dilated from inside."""
-    from headforge.avatars.nha.model import FRAME_KEYS
+    from headforge.head.pose import FRAME_KEYS
     from headforge.head.topology import vertex_normals
     from headforge.render.shading import sh_shading
     import cv2
@@ -120,7 +121,7 @@ def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None 
             params = avatar.frame_params(torch.tensor([f]))
             params = {**params, "translation": torch.zeros_like(params["translation"])}
             verts, _, _ = avatar.pose(params)
-            save(verts[0].numpy() * np.array([1.0, -1.0, -1.0]), output / "frames" / f"{f:05d}.{fmt}")
+            save(verts[0].numpy() @ flip_matrix(), output / "frames" / f"{f:05d}.{fmt}")  # camera -> head axes
     from headforge.render.io import write_png
 
     write_png(output / "texture.png", texture)
@@ -143,5 +144,5 @@ def render_frames(avatar, K: torch.Tensor, resolution: int, params_seq: dict[str
             params["root_pose"] = torch.tensor(
                 (Rotation.from_matrix(R.numpy()) * Rotation.from_rotvec(params["root_pose"][0].numpy())).as_rotvec(),
                 dtype=torch.float32)[None]
-        cams = Cameras(K[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+        cams = Cameras.at_origin(K, 1, resolution)
         yield avatar.render(params, cams, background=1.0).rgb[0].clamp(0, 1).numpy()

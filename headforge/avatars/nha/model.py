@@ -2,7 +2,7 @@
 per-frame tracking parameters, rendered with headforge's differentiable rasterizer.
 
 Coordinates: canonical head space (metres, y up, face +z); camera OpenCV at the origin with
-x_cam = diag(1, -1, -1) x + translation (the dataset convention).
+x_cam = diag(1, -1, -1) x + translation (:mod:`headforge.head.pose`).
 """
 
 from __future__ import annotations
@@ -13,19 +13,21 @@ import numpy as np
 import torch
 from torch import nn
 
+from headforge.avatars.base import Avatar, AvatarRender, Geometry
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
 from headforge.head.lbs import surface_points
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
-from headforge.head.topology import directed_edges, laplacian_smooth, remove_region, subdivide_head, vertex_normals
+from headforge.head.pose import FRAME_KEYS, head_to_camera
+from headforge.head.topology import (directed_edges, laplacian_smooth, open_neck_ring, remove_region, subdivide_head,
+                                     vertex_normals)
+from headforge.metrics.protocol import MOUTH_PAIRS
 from headforge.render import mesh
-from headforge.render.camera import Cameras
+from headforge.render.camera import Cameras, project_points
 from headforge.render.matte import soft_matte
 from headforge.render.shading import constant_sh, sh_shading
 
-FLIP = torch.tensor([1.0, -1.0, -1.0])
-FRAME_KEYS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
-LIP_PAIRS = ((13, 14), (82, 87), (312, 317))  # MediaPipe inner-lip pairs: the mouth opening
+LIP_PAIRS = tuple(map(tuple, MOUTH_PAIRS.tolist()))  # MediaPipe inner-lip pairs: the mouth opening
 # MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
 EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tolist()
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp); the
@@ -67,19 +69,19 @@ def face_oval_vertices(data: HeadModelData) -> np.ndarray:
     return inside & (v[:, 2] > loop[:, 2].min())
 
 
-@dataclass
-class Rendered:
-    rgb: torch.Tensor  # (B, H, W, 3) antialiased, composited on ``background``
-    coverage: torch.Tensor  # (B, H, W) antialiased silhouette in [0, 1]
+@dataclass(kw_only=True)
+class Rendered(AvatarRender):
+    """NHA's render: rgb (B, H, W, 3) antialiased on ``background``, coverage (B, H, W), landmarks
+    (B, L, 3) camera space, and NHA's own extras."""
+
     face_region: torch.Tensor | None  # (B, H, W) antialiased coverage by the face-oval region, or None
     fragments: mesh.Fragments
     vertices: torch.Tensor  # (B, V, 3) camera space
-    landmarks: torch.Tensor | None  # (B, L, 3) camera space
     offsets: torch.Tensor  # (B, V, 3) canonical offsets
     albedo: torch.Tensor | None = None  # (B, H, W, 3) T's output before shading (``shading`` avatars), 0 off the mesh
 
 
-class NeuralHeadAvatar(nn.Module):
+class NeuralHeadAvatar(Avatar):
     def __init__(self, template: HeadModelData, tracking: dict[str, torch.Tensor], config):
         super().__init__()
         # NHA's tanh joint limits: frame poses are raw parameters, the skinning sees the limited ones
@@ -136,11 +138,10 @@ class NeuralHeadAvatar(nn.Module):
         edges = torch.unique(torch.sort(edges, 1).values, dim=0)
         self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
         self.register_buffer("uv_corners", self.head.face_corner_uvs())
-        # The rows above a ring's mean row bound an image area. neck_ring (the cut's) bounds the scored
-        # area; train_ring (the template's own open neck boundary: the same ring on the cut template, 3 cm
-        # lower with the lower neck kept) bounds the area of the training and fitting energies.
-        self.register_buffer("neck_ring", torch.as_tensor(_neck_cut_ring(template), dtype=torch.long))
-        self.register_buffer("train_ring", torch.as_tensor(_open_neck_ring(template), dtype=torch.long),
+        # The rows above train_ring's mean row (the template's own open neck boundary: NHA's cut, or 3 cm
+        # lower with the lower neck kept) bound the area of the training and fitting energies; the scored
+        # area is the protocol's (headforge.metrics.protocol), from the tracked head model.
+        self.register_buffer("train_ring", torch.as_tensor(open_neck_ring(template), dtype=torch.long),
                              persistent=False)  # derived
         self.has_lips = self.head.num_landmarks == 478
         oval = face_oval_vertices(template) if self.has_lips else np.zeros(V, bool)
@@ -190,15 +191,14 @@ class NeuralHeadAvatar(nn.Module):
         offsets = self.offsets(params["neck_pose"])
         out = self.head(shape=self.shape.expand(B, -1), offsets=offsets,
                         **{k: params[k] for k in FRAME_KEYS if k != "translation"})
-        flip = FLIP.to(out.vertices)
-        verts = out.vertices * flip + params["translation"][:, None]
+        verts = head_to_camera(out.vertices, params["translation"])
         lmk = None
         if out.landmarks is not None:
             # Landmarks steer the tracking parameters, not G: detected landmarks are noisy from frame
             # to frame, and through the shared network they drowned the silhouette's hair signal.
             lmk_out = self.head(shape=self.shape.expand(B, -1), offsets=offsets.detach(),
                                 **{k: params[k] for k in FRAME_KEYS if k != "translation"})
-            lmk = lmk_out.landmarks * flip + params["translation"][:, None]
+            lmk = head_to_camera(lmk_out.landmarks, params["translation"])
         return verts, lmk, offsets
 
     def mouth_condition(self, params: dict[str, torch.Tensor], landmarks: torch.Tensor | None) -> torch.Tensor:
@@ -248,8 +248,29 @@ class NeuralHeadAvatar(nn.Module):
         rgb, coverage = out[..., :3], out[..., 3].clamp(0, 1)
         if matte and self.matte_sigma > 0:
             rgb, coverage = soft_matte(rgb, coverage, float(self.matte_sigma * H / self.matte_resolution), background)
-        return Rendered(rgb, coverage, out[..., 4].clamp(0, 1) if face_region else None, frags, verts, lmk, offsets,
-                        albedo)
+        return Rendered(rgb, coverage, landmarks=lmk, face_region=out[..., 4].clamp(0, 1) if face_region else None,
+                        fragments=frags, vertices=verts, offsets=offsets, albedo=albedo)
+
+    @torch.no_grad()
+    def geometry(self, params: dict[str, torch.Tensor]) -> Geometry:
+        """The posed mesh in camera space; face = the template's face region, head = all but the neck."""
+        head = self.head
+        face = torch.zeros(head.num_vertices, dtype=torch.bool)
+        face[head.region("face")] = True
+        keep = torch.ones(head.num_vertices, dtype=torch.bool)
+        if "neck" in head.region_names:
+            keep[head.region("neck")] = False
+        return Geometry(self.pose(params)[0], head.faces, face_vertices=face, head_vertices=keep)
+
+    def export(self, output, fmt: str, frames: list[int] | None = None, texture_size: int = 512):
+        from headforge.avatars.nha.export import export_run
+
+        return export_run(self, output, fmt, frames, texture_size)
+
+    def export_formats(self) -> tuple[str, ...]:
+        from headforge.avatars.nha.export import FORMATS
+
+        return FORMATS
 
     def _face_region(self, frags: mesh.Fragments, cameras: Cameras, verts: torch.Tensor) -> torch.Tensor:
         """(B, H, W, 1) interpolated face-oval indicator, with gradients to the vertices so the
@@ -289,7 +310,7 @@ class NeuralHeadAvatar(nn.Module):
         v = vertices[:, self.outline_vertices]
         n = vertex_normals(vertices, self.head.faces)[:, self.outline_vertices]
         cos = (n * torch.nn.functional.normalize(v, dim=-1)).sum(-1).detach()
-        px = v[..., :2] / v[..., 2:] * K[0, 0] + K[:2, 2]
+        px = project_points(v, K)
         return [px[b][cos[b].abs() < max_cos] for b in range(len(v))]
 
     # ---- regularisers ----------------------------------------------------------------------
@@ -338,36 +359,3 @@ def _edges_without_face_to_scalp(faces: torch.Tensor, face: torch.Tensor, scalp:
     is_scalp[scalp] = True
     keep = ~(is_face[i] & is_scalp[j])
     return torch.stack([i[keep], j[keep]], 1)
-
-
-def _neck_cut_ring(data: HeadModelData) -> np.ndarray:
-    """Vertex indices of the neck cut, which bounds the scored image area (the rows above it):
-    with the lower neck removed, the open boundary on the neck; with it kept
-    (``remove_lower_neck=False``), the open boundary the removal would leave -- the same ring, so
-    both templates are scored on the same pixels. Falls back to any open boundary."""
-    faces = np.asarray(data.faces)
-    if "lower_neck" in data.regions:
-        lower = np.zeros(len(data.v_template), dtype=bool)
-        lower[data.regions["lower_neck"]] = True
-        faces = faces[~lower[faces].any(1)]  # the faces remove_region keeps (indices unchanged)
-    return _open_neck_ring(data, faces)
-
-
-def _open_neck_ring(data: HeadModelData, faces: np.ndarray | None = None) -> np.ndarray:
-    """Vertex indices of the open boundary of ``faces`` (default: the template's) on the neck,
-    which bounds the trained image area: the neck the template has, down to its end. Falls back
-    to any open boundary."""
-    faces = np.asarray(data.faces) if faces is None else faces
-    V = len(data.v_template)
-    neck = np.zeros(V, dtype=bool)
-    neck[data.regions.get("neck", [])] = True
-    boundary = _boundary_vertices(faces, V)
-    ring = boundary[neck[boundary]]
-    return ring if len(ring) else boundary
-
-
-def _boundary_vertices(faces: np.ndarray, V: int) -> np.ndarray:
-    """Vertices on open boundary edges (the neck cut after removing the lower neck)."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    uniq, counts = np.unique(edges, axis=0, return_counts=True)
-    return np.unique(uniq[counts == 1].ravel())

@@ -1,0 +1,391 @@
+"""The training engine every avatar method runs on: ``fit(METHOD, DATASET, RUN, config)``.
+
+It owns the loop over the method's stages, the optimiser steps with the learning-rate decay,
+checkpoints and exact resume (a killed run continues where it stopped, with the same random
+batches), ``losses.csv``, ``val.csv``, ``progress.png``, in-training validation, per-frame
+fitting of frame parameters (test-time fitting of the held-out frames, and the method's own
+alignment steps), and the scoring of the held-out frames with the one protocol of
+:mod:`headforge.metrics.protocol`. A method (:class:`~headforge.avatars.base.Method`) owns its
+avatar, stages, optimisers, energies and hooks.
+
+Per-frame fitting (:func:`fit_frames`): the networks frozen, each batch of frames gets its own
+Adam on its expression, poses and translation for ``steps`` steps of the method's ``align``
+energies, then ``photometric_steps`` of ``align_rgb``. Frames are independent once the networks
+are frozen, so this is exact per-frame optimisation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from headforge.avatars.base import Avatar, Method, Stage
+from headforge.avatars.frames import FrameData
+from headforge.avatars.run import RunAssets, load_weights, read_info, run_info, save_checkpoint
+from headforge.errors import HeadforgeError
+
+TTO_CHECKPOINT_FRAMES = 64  # held-out frames test-time fitted between two checkpoints (~3 min on 2 CPU cores)
+WORST_FRAMES = 6  # frames on the worst-frames sheet
+
+
+def lr_factor(it: int, config) -> float:
+    """Learning-rate multiple at iteration ``it``: 1 until ``lr_decay_start`` of the schedule,
+    then a half cosine down to ``lr_final`` at the last iteration. Adam with a constant rate and
+    batches of two frames ends on a noisy iterate; decaying settles it. A function of the
+    iteration alone, so a resumed run gets the same rates."""
+    start = config.lr_decay_start * config.total_iters
+    if it < start:
+        return 1.0
+    progress = min(1.0, (it - start) / max(1.0, config.total_iters - start))
+    return config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def stage_at(stages: list[Stage], it: int) -> Stage:
+    """The stage that iteration ``it`` belongs to."""
+    end = 0
+    for stage in stages:
+        end += stage.iterations
+        if it < end:
+            return stage
+    return stages[-1]
+
+
+def fit_frames(method: Method, avatar: Avatar, data: FrameData, config, steps: int, photometric_steps: int = 0,
+               rows: torch.Tensor | None = None) -> None:
+    """Fit the frame parameters of ``data``'s frames (all, or positions ``rows``) with the
+    avatar's own parameters frozen (see the module docstring)."""
+    rows = torch.arange(len(data)) if rows is None else rows
+    was = [p.requires_grad for p in avatar.parameters()]
+    avatar.requires_grad_(False)
+    try:
+        for chunk in rows.split(4 * config.batch):
+            batch = data.batch(chunk)
+            idx = batch["index"]
+            params = {k: v.detach()[idx].clone().requires_grad_(True) for k, v in avatar.frames.items()}
+            opt = torch.optim.Adam([{"params": [p], "lr": config.lr_align / 10 if k == "translation" else config.lr_align}
+                                    for k, p in params.items()])
+            for step in range(steps + photometric_steps):
+                stage = "align" if step < steps else "align_rgb"
+                loss = sum(method.losses(avatar, batch, data.K, config, stage, params).values())
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            with torch.no_grad():
+                for k, p in params.items():
+                    avatar.frames[k][idx] = p.detach()
+    finally:
+        for p, flag in zip(avatar.parameters(), was):
+            p.requires_grad_(flag)
+
+
+@torch.no_grad()
+def score(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path | None = None, max_images: int = 6,
+          landmarks: bool = False, render_options: dict | None = None) -> tuple[dict, dict]:
+    """The protocol's scores of ``data``'s frames at the avatar's frame parameters: (summary,
+    per-frame arrays). Writes up to ``max_images`` frame | avatar PNGs to ``out_dir``."""
+    from headforge.metrics.protocol import composite, score_frames, summarise
+    from headforge.render.camera import Cameras
+    from headforge.render.io import write_png
+
+    per_frame: dict[str, list] = {}
+    saved = 0
+    for rows in torch.arange(len(data)).split(config.batch):
+        batch = data.batch(rows)
+        cams = Cameras.at_origin(data.K, len(rows), config.resolution)
+        r = method.render_for_scoring(avatar, avatar.frame_params(batch["index"]), cams, **(render_options or {}))
+        s = score_frames(r.rgb, r.coverage, batch["image"], batch["mask"], batch["region"], batch["face_scored"],
+                         landmarks=landmarks)
+        for k, v in s.items():
+            per_frame.setdefault(k, []).append(v)
+        if out_dir is not None and saved < max_images:
+            pred, gt = composite(r.rgb, batch["image"], batch["mask"], batch["region"])
+            for b in range(min(len(rows), max_images - saved)):
+                write_png(out_dir / f"{int(batch['index'][b]):05d}.png", torch.cat([gt[b], pred[b]], 1).clamp(0, 1))
+                saved += 1
+    arrays = {k: np.concatenate(v) for k, v in per_frame.items()}
+    return summarise(arrays), arrays
+
+
+def validate(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path | None = None) -> dict:
+    """In-training validation: a short test-time fitting (``val_tto_steps``) of ``data``'s
+    frames, the protocol's image scores, and the frames' parameters restored (it counts in the
+    training time, so it does not take the final score's ``tto_steps``)."""
+    idx = data.index
+    saved = {k: v.detach()[idx].clone() for k, v in avatar.frames.items()}
+    try:
+        fit_frames(method, avatar, data, config, config.val_tto_steps, config.tto_photometric_steps)
+        return score(method, avatar, data, config, out_dir)[0]
+    finally:
+        with torch.no_grad():
+            for k, v in saved.items():
+                avatar.frames[k][idx] = v
+
+
+@dataclass
+class TrainingContext:
+    """What a method's hooks see of a running fit: the avatar, config, optimisers, the training
+    and held-out frames, the resumable ``state`` (JSON; hooks keep their progress in it) and
+    ``checkpoint()``."""
+
+    run: Path
+    method: Method
+    avatar: Avatar
+    config: object
+    optimisers: dict
+    train: FrameData
+    val: FrameData
+    state: dict
+    log: object
+    start: float
+    iteration: int = 0
+    extras: dict = field(default_factory=dict)
+
+    def checkpoint(self) -> None:
+        self.state.update(iteration=self.iteration, seconds=time.perf_counter() - self.start)
+        save_checkpoint(self.run, self.avatar, self.optimisers, self.state)
+
+    def fit_frames(self, data: FrameData, steps: int, photometric_steps: int = 0, rows: torch.Tensor | None = None) -> None:
+        fit_frames(self.method, self.avatar, data, self.config, steps, photometric_steps, rows)
+
+
+def _resolve(method) -> Method:
+    from headforge.avatars import registry
+
+    return registry.get(method) if isinstance(method, str) else method
+
+
+def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=print, progress=None,
+        device: torch.device | str = "cpu") -> dict:
+    """Train ``method`` (a registered name or instance) on ``dataset`` into the run folder
+    ``run``, on ``device``; resumes from RUN's checkpoint when its settings and data match (also
+    on another device: checkpoints are written from host copies). Returns metrics.json's figures."""
+    from headforge.metrics.protocol import TrackedHead
+
+    method = _resolve(method)
+    dataset, run = Path(dataset), Path(run)
+    torch.manual_seed(config.seed)
+    assets = RunAssets.from_dataset(dataset)  # reads and checks the dataset first
+    info = run_info(method.name, config, dataset, assets)
+    resume = (run / "state.json").is_file()
+    if resume or (run / "config.json").is_file():
+        previous = read_info(run)
+        saved = previous | {"config": json.loads(json.dumps(method.Config.from_saved(previous.get("config", {}), run).__dict__))}
+        if saved != info:
+            raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
+    avatar = method.build(assets, config)
+    head = TrackedHead(assets.head_data(), assets.tracking["shape"])
+    train = FrameData(dataset, "train", config.resolution, head).to(device)
+    val_all = FrameData(dataset, "val", config.resolution, head).to(device)
+    run.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        assets.save(run)
+        (run / "run.json").write_text(json.dumps(info, indent=1))
+    (run / "val").mkdir(exist_ok=True)
+    avatar.to(device)
+    state = {"iteration": 0, "seconds": 0.0}
+    optimisers = method.optimisers(avatar, config)
+    if resume:
+        load_weights(avatar, run / "checkpoint.safetensors")
+        optimisers = method.optimisers(avatar, config)  # the parameters may have changed size
+        for k, sd in torch.load(run / "optimisers.pt", map_location="cpu", weights_only=False).items():
+            optimisers[k].load_state_dict(sd)
+        state = json.loads((run / "state.json").read_text())
+        log(f"resuming {run} at iteration {state['iteration']}")
+    else:
+        for name in ("losses.csv", "val.csv"):
+            (run / name).unlink(missing_ok=True)
+    stages = method.stages(config)
+    total = sum(s.iterations for s in stages)
+    gen = torch.Generator().manual_seed(config.seed + state["iteration"])
+    start = time.perf_counter() - state["seconds"]
+    ctx = TrainingContext(run, method, avatar, config, optimisers, train, val_all, state, log, start, state["iteration"])
+    loss_file = (run / "losses.csv").open("a")
+    while ctx.iteration < total:
+        method.before_iteration(ctx)
+        it = ctx.iteration
+        stage = stage_at(stages, it)
+        rows = torch.randperm(len(train), generator=gen)[: config.batch]
+        terms = method.losses(avatar, train.batch(rows), train.K, config, stage.name)
+        loss = sum(terms.values())
+        for o in ctx.optimisers.values():
+            o.zero_grad()
+        loss.backward()
+        factor = lr_factor(it, config)
+        for name in stage.optimisers:
+            for group in ctx.optimisers[name].param_groups:
+                group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
+            ctx.optimisers[name].step()
+        ctx.iteration = it = it + 1
+        if method.after_iteration(ctx):
+            ctx.optimisers = method.optimisers(avatar, config)
+        loss_file.write(f"{it},{stage.name},{time.perf_counter() - start:.1f},{loss.item():.7g},"
+                        + ",".join(f"{k}={v.item():.7g}" for k, v in terms.items()) + "\n")
+        if progress:
+            progress()
+        if it % config.val_every == 0 or it == total:
+            sub = torch.linspace(0, len(val_all) - 1, min(config.val_frames, len(val_all))).long()
+            scores = validate(method, avatar, val_all.subset(sub), config, run / "val")
+            with (run / "val.csv").open("a") as f:
+                f.write(f"{it},{time.perf_counter() - start:.1f},{scores['psnr']:.4f},{scores['ssim']:.4f}\n")
+            log(f"iteration {it} ({stage.name}): loss {loss.item():.4f}, val PSNR {scores['psnr']:.2f} dB "
+                f"({len(sub)} frames, after {config.val_tto_steps} test-time fitting steps)")
+        if it % config.checkpoint_every == 0 or it == total:
+            loss_file.flush()
+            ctx.checkpoint()
+    loss_file.close()
+    plot_progress(run)
+    # After training: the method's hook, then the test-time fitting of the held-out frames, which
+    # checkpoints every TTO_CHECKPOINT_FRAMES frames ("tested" in state.json).
+    if "tested" not in state:
+        state["train_seconds"] = time.perf_counter() - start
+        state["after_training"] = method.after_training(ctx)
+        state["tested"] = 0
+        ctx.checkpoint()
+    if state["tested"] < len(val_all):
+        log(f"test-time optimisation of the validation frames {state['tested']}..{len(val_all)} "
+            f"({config.tto_steps} + {config.tto_photometric_steps} photometric steps each)")
+    for chunk in torch.arange(state["tested"], len(val_all)).split(TTO_CHECKPOINT_FRAMES):
+        fit_frames(method, avatar, val_all, config, config.tto_steps, config.tto_photometric_steps, rows=chunk)
+        state["tested"] = int(chunk[-1]) + 1
+        ctx.checkpoint()
+        log(f"test-time fitted {state['tested']}/{len(val_all)} validation frames")
+    summary, per_frame = score(method, avatar, val_all, config, run / "val", max_images=8, landmarks=True)
+    write_worst_frames(method, avatar, val_all, config, per_frame, run / "val_worst.png")
+    metrics = {"method": method.name, "train_minutes": round(state["train_seconds"] / 60, 2),
+               "device": str(torch.device(device))}
+    metrics |= {f"val_{k}": v for k, v in summary.items()}
+    metrics |= state["after_training"] | method.extra_scores(ctx)
+    if (dataset / "gt" / "views").is_dir():
+        from headforge.head.pose import from_tracking
+
+        metrics |= score_novel_views(method, avatar, dataset, val_all, head, from_tracking(assets.tracking), config)
+    if (dataset / "gt" / "geometry.safetensors").is_file():
+        export_geometry(avatar, dataset, run / "geometry.safetensors")
+    metrics |= {"iterations": total, "resolution": config.resolution, "lpips": "n/a (no pretrained weights)",
+                "dataset": dataset.name}
+    (run / "metrics.tmp.json").write_text(json.dumps(metrics, indent=1))
+    (run / "metrics.tmp.json").replace(run / "metrics.json")
+    return metrics
+
+
+@torch.no_grad()
+def write_worst_frames(method: Method, avatar: Avatar, data: FrameData, config, per_frame: dict, path: Path) -> None:
+    """A sheet of the held-out frames that agree worst with the avatar in expression (largest
+    AKD; lowest head PSNR where no landmarks were found): rows of frame | avatar | |difference| x 4."""
+    from headforge.metrics.protocol import composite
+    from headforge.render.camera import Cameras
+    from headforge.render.io import write_png
+
+    key = per_frame.get("akd_px")
+    if key is None or not np.isfinite(key).any():
+        order = np.argsort(np.nan_to_num(per_frame["psnr_head"], nan=np.inf))
+    else:
+        order = np.argsort(-np.nan_to_num(key, nan=-np.inf))
+    rows = torch.as_tensor(order[:WORST_FRAMES].copy())
+    batch = data.batch(rows)
+    r = method.render_for_scoring(avatar, avatar.frame_params(batch["index"]), Cameras.at_origin(data.K, len(rows), config.resolution))
+    pred, gt = composite(r.rgb, batch["image"], batch["mask"], batch["region"])
+    diff = ((pred - gt).abs() * 4).clamp(0, 1)
+    write_png(path, torch.cat([torch.cat([gt[b], pred[b], diff[b]], 1) for b in range(len(rows))], 0).clamp(0, 1))
+
+
+@torch.no_grad()
+def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: FrameData, head, tracked: dict,
+                      config) -> dict:
+    """The protocol's scores of the avatar from the novel views a synth subject carries
+    (``gt/views/FRAME_yaw±D.png``, RGBA: the camera orbited by D degrees about the head's
+    vertical axis through its origin), at the held-out frames' fitted parameters (NHA Sec. 4.4);
+    the scored regions from the tracked head model (``head``) at its ``tracked`` parameters."""
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from headforge.head.pose import flip_matrix
+    from headforge.metrics.protocol import score_frames, summarise
+    from headforge.render.camera import Cameras
+
+    path = dataset / "gt" / "subject.json"
+    if not path.is_file():
+        return {}
+    info = json.loads(path.read_text())
+    centre = torch.tensor(info["translation"], dtype=torch.float32)  # the head origin in the camera frame
+    out = {}
+    flip = flip_matrix()
+    position = {int(f): i for i, f in enumerate(data.index.tolist())}
+    for yaw in info.get("novel_yaws", []):
+        files = sorted((dataset / "gt" / "views").glob(f"*_yaw{yaw:+.0f}.png"))
+        rows = [position[int(p.name[:5])] for p in files if int(p.name[:5]) in position]
+        files = [p for p in files if int(p.name[:5]) in position]
+        if not rows:
+            continue
+        R = torch.tensor(flip @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip, dtype=torch.float32)
+        t = centre - R @ centre
+        per_frame = {}
+        for chunk in range(0, len(rows), config.batch):
+            sel = torch.tensor(rows[chunk:chunk + config.batch])
+            rgba = [np.asarray(Image.open(p).resize((config.resolution,) * 2, Image.BILINEAR), np.float32) / 255
+                    for p in files[chunk:chunk + config.batch]]
+            rgba = torch.from_numpy(np.stack(rgba))
+            B = len(sel)
+            cams = Cameras(data.K.expand(B, 3, 3), R.expand(B, 3, 3), t.expand(B, 3), config.resolution, config.resolution)
+            params = avatar.frame_params(data.index[sel])
+            region, face = head.regions({k: v[data.index[sel]] for k, v in tracked.items()}, cams)
+            r = method.render_for_scoring(avatar, params, cams)
+            s = score_frames(r.rgb, r.coverage, rgba[..., :3], rgba[..., 3], region, face, landmarks=False)
+            for k, v in s.items():
+                per_frame.setdefault(k, []).append(v)
+        summary = summarise({k: np.concatenate(v) for k, v in per_frame.items()})
+        out |= {f"novel_yaw{yaw:+.0f}_{k}": v for k, v in summary.items() if k in ("psnr", "ssim", "l1", "psnr_head", "frames")}
+    return out
+
+
+@torch.no_grad()
+def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
+    """Camera-space surfaces of the avatar at the frames that carry ground truth in a synth
+    dataset (the ``headforge eval`` geometry format)."""
+    from safetensors.numpy import load_file, save_file
+
+    frames = load_file(str(dataset / "gt" / "geometry.safetensors"))["frames"]
+    T = avatar.frames["translation"].shape[0]
+    frames = frames[frames < T]
+    parts = [avatar.geometry(avatar.frame_params(torch.from_numpy(chunk)))
+             for chunk in np.array_split(frames, max(1, len(frames) // 8))]
+    g = parts[0]
+    if g.faces is None:
+        return  # point avatars: the geometry metrics need a mesh
+    save_file({"frames": frames.astype(np.int64), "vertices": torch.cat([p.vertices for p in parts]).cpu().numpy().astype(np.float32),
+               "faces": g.faces.cpu().numpy().astype(np.int64), "face_vertices": g.face_vertices.cpu().numpy(),
+               "head_vertices": g.head_vertices.cpu().numpy()}, str(path))
+
+
+def plot_progress(run: Path) -> None:
+    """progress.png: training loss and validation PSNR against wall-clock minutes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [line.split(",") for line in (run / "losses.csv").read_text().splitlines() if line]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    if rows:
+        t = np.array([float(r[2]) for r in rows]) / 60
+        loss = np.array([float(r[3]) for r in rows])
+        k = max(1, len(loss) // 100)
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        axes[0].plot(t[len(t) - len(smooth):], smooth)
+        axes[0].set(xlabel="minutes", ylabel="training loss", yscale="log")
+    if (run / "val.csv").is_file():
+        val = np.array([[float(v) for v in line.split(",")] for line in (run / "val.csv").read_text().splitlines() if line])
+        if len(val):
+            axes[1].plot(val[:, 1] / 60, val[:, 2], marker="o")
+    axes[1].set(xlabel="minutes", ylabel="val. PSNR (dB, few frames, short fit)")
+    fig.tight_layout()
+    tmp = run / "progress.tmp.png"
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(run / "progress.png")

@@ -1,0 +1,280 @@
+"""Neural Head Avatars (Grassal et al., CVPR 2022) as a headforge method: energies, optimisers,
+stages and hooks; the avatar itself is :class:`headforge.avatars.nha.model.NeuralHeadAvatar`.
+
+Schedule (NHA Sec. 3.2 / App. A.3): geometry initialisation (landmarks, silhouette, regularisers;
+G and the per-frame parameters), texture initialisation (photometric, geometry frozen), then
+joint optimisation. Adam for the networks, SGD for the per-frame parameters.
+
+Hooks: between the geometry and texture stages every training frame is aligned on its own (the
+engine's per-frame fitting, ``align_steps`` steps against the silhouette, mask outline and
+landmarks): training visits each frame only a few times, so without it the frames keep the
+tracker's poses, whose few-pixel misfit of the outline was three quarters of the image error on
+talking_bun. After training the avatar's edge softness is fitted to the training frames
+(:func:`fit_matte`, :mod:`headforge.render.matte`): a segmenter's matte is soft over a few pixels
+where a mesh edge is one; metrics.json gives the held-out PSNR with and without it.
+
+Terms we can and cannot have on real video (no pretrained weights): NHA's normal term needs a
+normal predictor and its perceptual term VGG -- both absent, so the normal term is off and a
+weight-free SSIM term stands in for the perceptual one. NHA's semantic term becomes two regions:
+the whole head against the foreground mask above the neck cut (silhouette, plus the outline
+chamfer of :func:`contour_term`), and the face against the face oval of the detected landmarks.
+The photometric target is the matted frame (on white by its soft matte, as scored).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from headforge.avatars.base import Method, Stage
+from headforge.avatars.nha.config import NHAConfig
+from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
+from headforge.avatars.registry import register
+from headforge.metrics.protocol import matte_on_white
+from headforge.render.camera import Cameras, project_points
+
+ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
+
+
+def _above_neck(ring_indices: torch.Tensor, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
+    """(B, H, W) bool: pixels above the neck cut, the mean row of the ring ``ring_indices`` of
+    ``verts`` (B, V, 3) projected (the avatar's ``train_ring`` bounds the energies' area); below
+    it the foreground mask shows neck and shoulders the avatar does not model."""
+    ring = verts[:, ring_indices]
+    y = project_points(ring, K)[..., 1]
+    cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
+    rows = torch.arange(res, dtype=verts.dtype, device=verts.device)[None, :, None]
+    return (rows < cut[:, None, None]).expand(-1, -1, res)
+
+
+def mask_outline(mask: torch.Tensor, area: torch.Tensor, max_points: int = 3000) -> list[torch.Tensor]:
+    """Per frame, pixel coordinates (x, y) of the GT mask's outline inside ``area`` (B, H, W)."""
+    m = mask > 0.5
+    inner = m.clone()
+    inner[:, 1:-1, 1:-1] = m[:, 1:-1, 1:-1] & m[:, :-2, 1:-1] & m[:, 2:, 1:-1] & m[:, 1:-1, :-2] & m[:, 1:-1, 2:]
+    edge = m & ~inner & area
+    out = []
+    for b in range(len(m)):
+        yx = torch.nonzero(edge[b]).float()
+        if len(yx) > max_points:
+            yx = yx[torch.linspace(0, len(yx) - 1, max_points, device=yx.device).long()]
+        out.append(yx.flip(-1))
+    return out
+
+
+def outer_band(covered: torch.Tensor, width: int = 2) -> torch.Tensor:
+    """(B, H, W) bool: pixels within ``width`` pixels of an uncovered one (``covered`` (B, H, W)
+    bool, the rendered coverage) -- where the rendered outer silhouette can lie."""
+    uncovered = (~covered).float()[:, None]
+    return torch.nn.functional.max_pool2d(uncovered, 2 * width + 1, stride=1, padding=width)[:, 0] > 0
+
+
+def contour_term(avatar, vertices: torch.Tensor, gt_mask: torch.Tensor, area: torch.Tensor, K: torch.Tensor,
+                 res: int, covered: torch.Tensor | None = None) -> torch.Tensor:
+    """Symmetric 2D chamfer (L1-like, in units of the image size) between the GT mask outline and
+    the projected silhouette-rim vertices of the avatar. Unlike the antialiased silhouette, whose
+    gradient lives in the one-pixel band at the rendered edge, it pulls the surface toward mask
+    parts far away (hair, a bun) -- the role of NHA's soft-rasterised semantic term.
+
+    ``covered`` (B, H, W) bool, the rendered coverage: rim vertices that project inside it (the
+    flanks of the nose, a cheek in front of the hair, the far side of the head) are occluding
+    contours within the silhouette or hidden, not part of its outline, and are left out --
+    pulled to the mask outline they would bulge the face toward the hair."""
+    rims = avatar.contour_points(vertices, K)
+    outlines = mask_outline(gt_mask, area)
+    band = outer_band(covered) if covered is not None else None
+    terms = []
+    for b, (rim, outline) in enumerate(zip(rims, outlines)):
+        inside = (rim >= 0).all(1) & (rim < res).all(1)
+        rim = rim[inside]
+        if len(rim):  # rim points below the neck cut have no outline to match
+            y, x = rim[:, 1].long(), rim[:, 0].long()
+            keep = area[b, y, x] if band is None else area[b, y, x] & band[b, y, x]
+            rim = rim[keep]
+        if len(rim) == 0 or len(outline) == 0:
+            continue
+        d = torch.cdist(outline, rim)
+        terms.append(d.min(1).values.mean() + d.min(0).values.mean())
+    if not terms:
+        return vertices.new_zeros(())
+    return torch.stack(terms).mean() / res
+
+
+def eyelid_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor:
+    """NHA's eye-lid energy: L1 between the avatar's and the detections' 2D offsets from each
+    upper to its lower eyelid landmark (EYELID_PAIRS), in pixels, over pairs detected in full.
+    The landmark term barely sees a blink (a few landmarks move a few pixels); this term
+    measures the eye opening itself. ``projected``/``detected``: (B, 478, 2) pixels."""
+    opening = projected[:, EYELID_UPPER] - projected[:, EYELID_LOWER]
+    target = detected[:, EYELID_UPPER] - detected[:, EYELID_LOWER]
+    ok = torch.isfinite(target).all(-1)
+    diff = (opening - torch.nan_to_num(target)).abs().sum(-1)
+    return (diff * ok).sum() / ok.sum().clamp(min=1)
+
+
+def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
+           params: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+    """Weighted energy terms of one batch. ``stage``: geometry, texture or joint (the training
+    stages), align (data terms that fit per-frame parameters: landmarks, silhouette, outline,
+    prior) or align_rgb (align plus the photometric terms). ``params``: the batch's per-frame
+    parameters (default: the avatar's own rows for ``batch["index"]``)."""
+    from headforge.metrics.image import ssim
+
+    res = config.resolution
+    B = len(batch["index"])
+    params = avatar.frame_params(batch["index"]) if params is None else params
+    photometric = stage in ("texture", "joint", "align_rgb")
+    semantic = config.w_semantic > 0 and stage != "texture"
+    r = avatar.render(params, Cameras.at_origin(K, B, res), background=1.0, texture=photometric, face_region=semantic,
+                      matte=False)
+    area = _above_neck(avatar.train_ring, r.vertices, K, res)
+    gt_mask = batch["mask"] * area
+    out = {}
+    # landmarks (L1, pixels / resolution), detections that exist only
+    lmk = batch["landmarks"]
+    if r.landmarks is not None:
+        proj = project_points(r.landmarks, K)
+        n = min(proj.shape[1], lmk.shape[1])
+        ok = torch.isfinite(lmk[:, :n]).all(-1)
+        diff = (proj[:, :n] - torch.nan_to_num(lmk[:, :n])).abs().sum(-1)
+        out["landmarks"] = config.w_landmarks * (diff * ok).sum() / ok.sum().clamp(min=1) / res * 10
+        if config.w_eyelids > 0 and n == 478:
+            out["eyelids"] = config.w_eyelids * eyelid_term(proj, lmk) / res * 10
+    out["silhouette"] = config.w_silhouette * ((r.coverage - gt_mask).abs() * area).mean()
+    if semantic and r.face_region is not None:
+        # NHA's semantic term for the one region we can segment without a face parser: the face oval
+        known = batch["face_known"][:, None, None]
+        out["semantic"] = config.w_semantic * ((r.face_region - batch["face_region"]).abs() * area * known).mean()
+    if config.w_contour > 0:
+        out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res, r.fragments.face_id >= 0)
+    if photometric:
+        # The target is the matted frame (on white, as evaluated): where the matte is soft (hair
+        # strands, a segmenter unsure of a bun) the texture learns the colour the frame shows.
+        inter = (r.coverage.detach() > 0.5) & (batch["mask"] > 0.5) & area
+        w = inter[..., None].float()
+        matted = matte_on_white(batch["image"], batch["mask"])
+        out["rgb"] = config.w_rgb * ((r.rgb - matted).abs() * w).sum() / w.sum().clamp(min=1) / 3
+        gt_comp = matted * w + (1 - w)
+        pred_comp = r.rgb * w + (1 - w)
+        out["ssim"] = config.w_ssim * (1 - ssim(pred_comp, gt_comp).mean())
+        if r.albedo is not None and config.w_albedo_tv > 0:
+            out["albedo_tv"] = config.w_albedo_tv * albedo_tv(r.albedo, inter)
+    if stage != "texture":
+        out["prior"] = config.w_prior * (params["expression"].pow(2).mean() + avatar.shape.pow(2).mean()
+                                         + 10 * sum(params[k].pow(2).mean() for k in ("neck_pose", "jaw_pose")))
+    if stage in ("geometry", "joint"):
+        mm = 1000 * r.offsets  # regularisers in millimetres
+        out["laplacian"] = config.w_laplacian * avatar.laplacian_term(mm)
+        out["offset_face"] = config.w_offset_face * ((mm ** 2).sum(-1) * avatar.face_vertices).mean()
+        out["edge"] = config.w_edge * avatar.edge_term(r.offsets + avatar.head.v_template)
+        if B > 1:  # surface consistency between the frames of the batch (random pairs)
+            out["surface"] = config.w_surface * (r.offsets[0] - r.offsets[1]).abs().mean()
+    return out
+
+
+def albedo_tv(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Mean L1 difference (per channel) of ``albedo`` (B, H, W, 3) between horizontally and
+    vertically neighbouring pixels that are both ``inside`` (B, H, W) bool. Shading baked into the
+    albedo varies smoothly and costs its full variation here; the piecewise-constant albedo of
+    hair, skin and lips costs only its edges."""
+    total, count = albedo.new_zeros(()), 0
+    for a, b, ia, ib in ((albedo[:, :, 1:], albedo[:, :, :-1], inside[:, :, 1:], inside[:, :, :-1]),
+                         (albedo[:, 1:], albedo[:, :-1], inside[:, 1:], inside[:, :-1])):
+        both = (ia & ib)[..., None]
+        total = total + ((a - b).abs() * both).sum()
+        count += int(both.sum())
+    return total / max(count, 1) / 3
+
+
+def optimisers(avatar, config: NHAConfig) -> dict:
+    # SGD per frame parameter group, scaled so one step moves translation by ~0.1 mm and
+    # rotations by ~1e-3 rad at typical gradients (momentum would keep moving frames that
+    # are not in the batch).
+    scale = {"translation": 0.01, "root_pose": 0.1, "neck_pose": 0.1, "jaw_pose": 0.1, "eye_left_pose": 0.1,
+             "eye_right_pose": 0.1, "expression": 1.0}
+    frames = torch.optim.SGD([{"params": [avatar.frames[k]], "lr": config.lr_frames * scale[k]} for k in scale])
+    geometry = torch.optim.Adam([{"params": avatar.geometry_net.parameters(), "lr": config.lr_geometry},
+                                 {"params": [avatar.shape], "lr": config.lr_shape}])
+    grids = ("grid", "mouth_grid")
+    texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n not in grids],
+                                 "lr": config.lr_texture},
+                                {"params": [getattr(avatar.texture_net, n) for n in grids], "lr": config.lr_grid}]
+                               + ([{"params": [avatar.sh], "lr": config.lr_texture * 10}] if avatar.sh is not None else []))
+    return {"frames": frames, "geometry": geometry, "texture": texture}
+
+
+def build_avatar(assets, config: NHAConfig):
+    from headforge.avatars.nha.model import NeuralHeadAvatar, build_template
+
+    template = build_template(assets.head_data(), config.subdivide, config.remove_lower_neck)
+    return NeuralHeadAvatar(template, assets.tracking, config)
+
+
+@torch.no_grad()
+def fit_matte(avatar, data, config: NHAConfig, frames: int = 32) -> tuple[float, list]:
+    """Fit the avatar's soft-matte sigma (:mod:`headforge.render.matte`) to ``frames`` evenly
+    spaced frames of ``data`` (training frames, with their fitted parameters): the edge width
+    whose matted renders best match the matted frames inside the protocol's head region. Sets
+    ``avatar.matte_sigma``; returns (sigma px, [(sigma, mse), ...])."""
+    from headforge.metrics.protocol import composite
+    from headforge.render.matte import fit_sigma
+
+    rows = torch.linspace(0, len(data) - 1, min(frames, len(data))).long()
+    rgb, cov, target, weight = [], [], [], []
+    for chunk in rows.split(4 * config.batch):
+        batch = data.batch(chunk)
+        r = avatar.render(avatar.frame_params(batch["index"]), Cameras.at_origin(data.K, len(chunk), config.resolution),
+                          background=1.0, matte=False)
+        _, gt = composite(r.rgb, batch["image"], batch["mask"], batch["region"])
+        rgb.append(r.rgb), cov.append(r.coverage), target.append(gt), weight.append(batch["region"])
+    sigma, scores = fit_sigma(torch.cat(rgb), torch.cat(cov), torch.cat(target), torch.cat(weight))
+    avatar.matte_sigma.fill_(sigma)
+    avatar.matte_resolution.fill_(config.resolution)
+    return sigma, scores
+
+
+@register
+class NHAMethod(Method):
+    name = "nha"
+    Config = NHAConfig
+
+    def build(self, assets, config: NHAConfig):
+        return build_avatar(assets, config)
+
+    def stages(self, config: NHAConfig) -> list[Stage]:
+        return [Stage("geometry", config.geometry_iters, ("frames", "geometry")),
+                Stage("texture", config.texture_iters, ("texture",)),
+                Stage("joint", config.joint_iters, ("frames", "geometry", "texture"))]
+
+    def optimisers(self, avatar, config: NHAConfig) -> dict:
+        return optimisers(avatar, config)
+
+    def losses(self, avatar, batch, K, config, stage, params=None):
+        return losses(avatar, batch, K, config, stage, params)
+
+    def before_iteration(self, ctx) -> None:
+        """After the geometry stage: align every training frame on its own, checkpointing every
+        ALIGN_CHECKPOINT_FRAMES frames ("aligned" in the run's state)."""
+        config, train = ctx.config, ctx.train
+        aligned = ctx.state.get("aligned", 0)
+        if ctx.iteration != config.geometry_iters or config.align_steps <= 0 or aligned >= len(train):
+            return
+        ctx.log(f"aligning training frames {aligned}..{len(train)} on their own ({config.align_steps} steps each)")
+        for chunk in torch.arange(aligned, len(train)).split(ALIGN_CHECKPOINT_FRAMES):
+            ctx.fit_frames(train, config.align_steps, rows=chunk)
+            ctx.state["aligned"] = int(chunk[-1]) + 1
+            ctx.checkpoint()
+            ctx.log(f"aligned {ctx.state['aligned']}/{len(train)} training frames")
+
+    def after_training(self, ctx) -> dict:
+        sigma, _ = fit_matte(ctx.avatar, ctx.train, ctx.config)
+        ctx.log(f"soft matte: edge sigma {sigma:.2f} px fitted to the training frames")
+        return {"matte_sigma_px": sigma}
+
+    def extra_scores(self, ctx) -> dict:
+        from headforge.avatars.engine import score
+
+        hard, _ = score(self, ctx.avatar, ctx.val, ctx.config, render_options={"matte": False})
+        return {"val_psnr_hard_edge": hard["psnr"]}
+
+    def render_for_scoring(self, avatar, params, cameras, matte: bool = True):
+        return avatar.render(params, cameras, background=1.0, matte=matte)
