@@ -392,5 +392,5 @@ def test_render_turntable_refuses_bad_numbers_and_outputs(open_head_data, tmp_pa
     assert_refused(invoke("render", "turntable", "-o", folder, *small), folder, "folder")
     blocker = tmp_path / "file"
     blocker.write_text("a file where a folder should be")
-    assert_refused(invoke("render", "turntable", "-o", blocker / "turn.mp4", *small), blocker / "turn.mp4")
+    assert_refused(invoke("render", "turntable", "-o", blocker / "turn.mp4", *small), blocker / "turn.mp4", "is a file")
     assert not out.exists() and not list(tmp_path.glob("*.partial.mp4"))

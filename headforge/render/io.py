@@ -28,9 +28,12 @@ def to_uint8(image: np.ndarray | torch.Tensor) -> np.ndarray:
 def _make_parent(path: Path) -> None:
     if path.is_dir():
         raise HeadforgeError(f"cannot write {path}: it is a folder")
+    blocker = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise HeadforgeError(f"cannot write {path}: {blocker} is a file, not a folder")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # a file where a folder should be, no permission
+    except OSError as exc:  # no permission, read-only disk
         raise HeadforgeError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
