@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from headforge.data import synthetic as S
+from headforge.bench import synthetic as S
 from headforge.errors import HeadforgeError
 
 
@@ -69,6 +69,7 @@ def test_synth_writes_a_tracked_dataset_with_consistent_ground_truth(bench):
     assert item["image"].shape == (224, 224, 3)
     meta = json.loads((subject / "dataset.json").read_text())
     assert meta["synthetic"]["gt"] == "gt/"
+    assert meta["fps"] == S.FPS == 25.0  # the rate the talking sequence is sampled at, not the folder default
     assert abs(meta["intrinsics"][0][0] - config.focal_factor * 224) < 1e-3  # known focal (float32) passed on
     info = json.loads((subject / "gt/subject.json").read_text())
     geo = load_file(str(subject / "gt/geometry.safetensors"))
