@@ -5,9 +5,12 @@ rendering.
     python benchmarks/bench_nha.py [--dataset DS] [--run RUN] [--iterations N] [--preset quick|paper]
                                    [--resolution R] [--device cpu|cuda] [--set FIELD=VALUE ...]
 
-Prints one JSON line: train_minutes, val_psnr, val_ssim, val_l1, val_psnr_hard_edge (without the fitted
-soft matte), matte_sigma_px, render_fps (the trained avatar
-at the training resolution on --device; CPU runs use 2 threads, as on the CI machines).
+Prints one JSON line: train_minutes, the protocol's held-out figures (val_psnr, val_ssim, val_l1,
+val_psnr_head over head pixels only, val_psnr_face, val_akd_px and the eye/mouth-opening errors,
+val_ms_ssim, val_cpbd), val_psnr_hard_edge (without the fitted soft matte), matte_sigma_px, render_fps
+(the trained avatar at the training resolution on --device; CPU runs use 2 threads, as on the CI
+machines). A --run folder that already holds a finished run is refused (its figures would be an
+earlier run's) unless --reuse is given, which the JSON line then says.
 """
 
 from __future__ import annotations
@@ -35,9 +38,16 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu (the CI machines' figure), cuda or auto")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an NHAConfig field for an A/B run (repeatable), e.g. --set tex_grid=256")
+    parser.add_argument("--reuse", action="store_true", help="report a finished --run folder instead of refusing it")
     args = parser.parse_args()
-    from headforge.avatars.nha.trainer import FrameData, NHAConfig, _cameras, fit, load_run
+    from headforge.avatars.engine import fit
+    from headforge.avatars.nha.config import NHAConfig
+    from headforge.avatars.run import load_run
     from headforge.devices import resolve_device
+    from headforge.render.camera import Cameras
+
+    if (args.run / "metrics.json").is_file() and not args.reuse:
+        sys.exit(f"{args.run} holds a finished run: pass another --run, or --reuse to report it")
 
     device = resolve_device(args.device)
     if device.type == "cpu":
@@ -59,11 +69,12 @@ def main() -> None:
         config.scale_schedule(args.iterations)
     for assignment in args.set:
         config.override(assignment)
-    metrics = fit(dataset, args.run, config, log=lambda m: print(m, file=sys.stderr), device=device)
-    avatar, config, _ = load_run(args.run, device)
-    data = FrameData(dataset, "val", config.resolution).to(device)
-    params = avatar.frame_params(data.index[:1])
-    cams = _cameras(data.K, 1, config.resolution)
+    reused = (args.run / "metrics.json").is_file()
+    metrics = fit("nha", dataset, args.run, config, log=lambda m: print(m, file=sys.stderr), device=device)
+    run = load_run(args.run, device)
+    avatar, config = run.avatar, run.config
+    params = avatar.frame_params(torch.tensor(run.assets.rows("val")[:1], device=device))
+    cams = Cameras.at_origin(run.assets.intrinsics(config.resolution).to(device), 1, config.resolution)
 
     def render() -> None:
         avatar.render(params, cams)
@@ -72,12 +83,11 @@ def main() -> None:
 
     with torch.no_grad():
         ms = timed(render, repeats=10)
-    print(json.dumps({"train_minutes": metrics["train_minutes"], "val_psnr": metrics["val_psnr"],
-                      "val_ssim": metrics["val_ssim"], "val_l1": metrics["val_l1"], "val_frames": metrics["val_frames"],
-                      "val_psnr_hard_edge": metrics["val_psnr_hard_edge"], "matte_sigma_px": metrics["matte_sigma_px"],
+    figures = {k: v for k, v in metrics.items() if k.startswith("val_") or k.startswith("novel_")}
+    print(json.dumps({"train_minutes": metrics["train_minutes"], **figures, "matte_sigma_px": metrics["matte_sigma_px"],
                       "iterations": metrics["iterations"], "preset": args.preset, "resolution": config.resolution,
                       "device": str(device), "overrides": args.set, f"render_fps_{config.resolution}": round(1000 / ms, 2),
-                      "lpips": "n/a (no pretrained weights)"}))
+                      "lpips": "n/a (no pretrained weights)", "reused_run": reused}))
 
 
 if __name__ == "__main__":

@@ -23,22 +23,28 @@ from timing import timed  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("run", type=Path)
+    parser.add_argument("dataset", type=Path, help="the run's dataset")
     parser.add_argument("--frames", type=int, default=8, help="frames per step (training uses 4 x batch = 8)")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    from headforge.avatars.nha.trainer import FrameData, load_run, losses
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.nha.method import losses
+    from headforge.avatars.run import load_run
     from headforge.errors import HeadforgeError
+    from headforge.metrics.protocol import TrackedHead
 
     torch.set_num_threads(2)
     try:
-        avatar, config, _ = load_run(args.run, "cpu")
+        run = load_run(args.run, "cpu")
     except HeadforgeError as err:
         sys.exit(f"error: {err}")
+    avatar, config = run.avatar, run.config
     avatar.requires_grad_(False)
-    dataset = json.loads((args.run / "config.json").read_text())["dataset"]
+    head = TrackedHead(run.assets.head_data(), run.assets.tracking["shape"])
+    dataset = args.dataset
     figures = {"frames_per_step": args.frames}
     for res in (config.resolution, config.resolution // 2):
-        data = FrameData(dataset, "train", res)
+        data = FrameData(dataset, "train", res, head)
         config.resolution = res
         batch = data.batch(torch.arange(args.frames))
         params = {k: v.detach()[batch["index"]].clone().requires_grad_(True) for k, v in avatar.frames.items()}

@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 
 from headforge.avatars.nha.model import build_template, scalp_top_back
-from headforge.avatars.nha.trainer import load_run
+from headforge.avatars.run import load_run
 from headforge.errors import HeadforgeError
 from headforge.head import load_data
 from headforge.metrics.benchmark import (align_face, exported_geometry, load_subject_gt, outer_surface_faces,
@@ -84,7 +84,7 @@ def report() -> None:
     hair_label, face_label = info["labels"]["hair"], info["labels"]["face"]
     gl = gt["labels"]
 
-    _, config, _ = load_run(args.run)
+    config = load_run(args.run).config
     base = load_data("open-head", None)
     nha_template = build_template(base, config.subdivide, config.remove_lower_neck)
     predictions = {

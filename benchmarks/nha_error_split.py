@@ -1,10 +1,10 @@
 """Where a trained NHA avatar's image error is: inside the head or on its outline.
 
-    python benchmarks/nha_error_split.py RUN [--split val|train] [--frames 16]
+    python benchmarks/nha_error_split.py RUN DATASET [--split val|train] [--frames 16]
 
 Takes ``--frames`` evenly spaced frames of the split, fits their per-frame parameters first
 (test-time fitting, the run's ``tto_steps``) when the split is ``val``, renders them as
-``evaluate`` scores them (256² composites on white above the neck cut) and splits the squared
+the scoring protocol composites them (on white, inside the tracked head's region) and splits the squared
 error over four pixel sets: both foreground, GT foreground only (the avatar misses it), avatar
 only (it covers GT background), neither. Prints a table, then one JSON line with each set's
 pixel count, share of the squared error and the PSNR the frames would have without that set's
@@ -20,34 +20,35 @@ from pathlib import Path
 
 import torch
 
-from headforge.avatars.nha.trainer import (
-    FrameData,
-    _subset,
-    composites,
-    load_run,
-    test_time_optimise,
-)
+from headforge.avatars.engine import fit_frames
+from headforge.avatars.frames import FrameData
+from headforge.avatars.run import load_run
 from headforge.errors import HeadforgeError
+from headforge.metrics.protocol import TrackedHead, composite
+from headforge.render.camera import Cameras
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("run", type=Path)
+    parser.add_argument("dataset", type=Path, help="the run's dataset")
     parser.add_argument("--split", choices=("val", "train"), default="val")
     parser.add_argument("--frames", type=int, default=16)
     args = parser.parse_args()
-    avatar, config, _ = load_run(args.run)
-    dataset = Path(json.loads((args.run / "config.json").read_text())["dataset"])
-    data = FrameData(dataset, args.split, config.resolution)
-    data = _subset(data, torch.linspace(0, len(data) - 1, min(args.frames, len(data))).long())
+    run = load_run(args.run)
+    avatar, config = run.avatar, run.config
+    data = FrameData(args.dataset, args.split, config.resolution, TrackedHead(run.assets.head_data(), run.assets.tracking["shape"]))
+    data = data.subset(torch.linspace(0, len(data) - 1, min(args.frames, len(data))).long())
     K = data.K
     if args.split == "val":
-        test_time_optimise(avatar, data, K, config)
+        fit_frames(run.method, avatar, data, config, config.tto_steps, config.tto_photometric_steps)
     totals = {name: [0.0, 0] for name in ("both", "gt_only", "avatar_only", "neither")}
     with torch.no_grad():
         for rows in torch.arange(len(data)).split(config.batch):
             batch = data.batch(rows)
-            r, pred, gt, area = composites(avatar, batch, K, config)
+            r = avatar.render(avatar.frame_params(batch["index"]), Cameras.at_origin(K, len(rows), config.resolution))
+            area = batch["region"]
+            pred, gt = composite(r.rgb, batch["image"], batch["mask"], area)
             se = ((pred - gt) ** 2).mean(-1)
             ours, theirs = r.coverage > 0.5, batch["mask"] > 0.5
             sets = {"both": ours & theirs, "gt_only": ~ours & theirs, "avatar_only": ours & ~theirs,

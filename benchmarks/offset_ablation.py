@@ -35,7 +35,8 @@ from pathlib import Path
 
 import torch
 
-from headforge.avatars.nha.trainer import export_geometry, load_run
+from headforge.avatars.engine import export_geometry
+from headforge.avatars.run import load_run
 from headforge.errors import HeadforgeError
 from headforge.metrics.benchmark import evaluate_geometry, load_subject_gt
 
@@ -66,11 +67,10 @@ def tracked_shape(run: Path, avatar) -> torch.Tensor:
 
 
 def tracked_params(run: Path) -> dict[str, torch.Tensor]:
-    """The per-frame parameters the tracker gave the run's dataset (as ``tracking.safetensors`` holds them)."""
-    from safetensors.torch import load_file
+    """The per-frame parameters the tracker gave the run's dataset (the run's own copy of them)."""
+    from headforge.avatars.run import RunAssets
 
-    dataset = Path(json.loads((run / "config.json").read_text())["dataset"])
-    return load_file(str(dataset / "tracking.safetensors"))
+    return RunAssets.load(run).tracking
 
 
 def zeroed_vertices(avatar, variant: str, rings: int) -> torch.Tensor:
@@ -109,7 +109,7 @@ def main() -> None:
         raise SystemExit(f"error: --params takes {' and/or '.join(PARAMS)}, got {args.params!r}")
     try:
         load_subject_gt(args.subject)
-        avatar, _, _ = load_run(args.run)
+        avatar = load_run(args.run).avatar
     except HeadforgeError as err:
         raise SystemExit(f"error: {err}") from None
     avatar.eval()

@@ -59,8 +59,6 @@ def tiny_nha_head_data(seed: int = 0):
     it is the same on every machine (the open-head build is not bit-identical between builds)."""
     from dataclasses import replace
 
-    from headforge.head.model import HeadModelData
-
     base = tiny_head_data(seed, with_posedirs=False)
     rng = np.random.default_rng(seed + 1)
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
@@ -123,7 +121,7 @@ def talking_bun():
 def synth_bench(tmp_path_factory, open_head_data):
     """One tiny `headforge synth` subject, rendered and tracked end to end (MediaPipe needs
     faces of ~200 px): (benchmark folder, config, report)."""
-    from headforge.data import synthetic as S
+    from headforge.bench import synthetic as S
 
     out = tmp_path_factory.mktemp("synth") / "bench"
     config = S.SynthConfig(subjects=1, train_frames=10, val_frames=6, resolution=224, supersample=1, gt_every=2,

@@ -29,7 +29,7 @@ def dataset(request) -> Path:
 
 @pytest.fixture(scope="module")
 def tiny_config():
-    from headforge.avatars.nha.trainer import NHAConfig
+    from headforge.avatars.nha.config import NHAConfig
 
     config = NHAConfig.quick()
     config.resolution = 128
@@ -56,11 +56,15 @@ def test_rasterizer_on_cuda_equals_the_numba_kernel(open_head):
 
 
 def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
-    from headforge.avatars.nha.trainer import FrameData, build_avatar, losses
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.nha.method import build_avatar, losses
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
 
     torch.manual_seed(0)
-    avatar, _ = build_avatar(dataset, tiny_config)
-    data = FrameData(dataset, "train", tiny_config.resolution)
+    assets = RunAssets.from_dataset(dataset)
+    avatar = build_avatar(assets, tiny_config)
+    data = FrameData(dataset, "train", tiny_config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
     on_gpu = copy.deepcopy(avatar).cuda()
     data_gpu = copy.deepcopy(data).to("cuda")
     rows = torch.tensor([0, 1])
@@ -81,18 +85,22 @@ def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
 
 
 def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path, interrupt_after):
-    from headforge.avatars.nha.trainer import FrameData, evaluate, fit, load_run
+    from headforge.avatars.engine import fit, score
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.run import load_run
+    from headforge.metrics.protocol import TrackedHead
 
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
+        fit("nha", dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
     state = json.loads((run / "state.json").read_text())
     assert state["iteration"] == 4 and state["aligned"] > 0
-    metrics = fit(dataset, run, tiny_config, log=lambda m: None, device="cpu")
+    metrics = fit("nha", dataset, run, tiny_config, log=lambda m: None, device="cpu")
     assert metrics["device"] == "cpu" and 5 < metrics["val_psnr"] < 60
-    avatar, config, _ = load_run(run, "cuda")
+    r = load_run(run, "cuda")
+    avatar, config = r.avatar, r.config
     assert next(avatar.parameters()).is_cuda
-    val = FrameData(dataset, "val", config.resolution)
-    on_gpu = evaluate(avatar, copy.deepcopy(val).to("cuda"), val.K.cuda(), config)
-    on_cpu = evaluate(avatar.cpu(), val, val.K, config)
+    val = FrameData(dataset, "val", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
+    on_gpu = score(r.method, avatar, copy.deepcopy(val).to("cuda"), config)[0]
+    on_cpu = score(r.method, avatar.cpu(), val, config)[0]
     assert abs(on_gpu["psnr"] - on_cpu["psnr"]) < 0.05, (on_gpu, on_cpu)

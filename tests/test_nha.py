@@ -12,6 +12,29 @@ from typer.testing import CliRunner
 
 from headforge.avatars.nha.networks import FiLMSiren, GeometryNet, MappingNetwork, TextureNet
 from headforge.errors import HeadforgeError
+from headforge.render.camera import Cameras
+
+
+def build_avatar(dataset, config):
+    """(NHA avatar of a dataset, its assets)."""
+    from headforge.avatars.nha.method import build_avatar as build
+    from headforge.avatars.run import RunAssets
+
+    assets = RunAssets.from_dataset(dataset)
+    return build(assets, config), assets
+
+
+def FrameData(dataset, split, resolution):
+    from headforge.avatars.frames import FrameData as Frames
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+
+    assets = RunAssets.from_dataset(dataset)
+    return Frames(dataset, split, resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+
+
+def _cameras(K, B, res):
+    return Cameras.at_origin(K, B, res)
 
 
 def test_film_siren_shapes_and_conditioning():
@@ -68,7 +91,7 @@ def test_normal_patches_shade_the_texture_and_reach_the_geometry():
 
 @pytest.fixture(scope="module")
 def tiny_config():
-    from headforge.avatars.nha.trainer import NHAConfig
+    from headforge.avatars.nha.config import NHAConfig
 
     config = NHAConfig.quick()
     config.resolution = 96
@@ -80,8 +103,6 @@ def tiny_config():
 
 
 def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
-    from headforge.avatars.nha.trainer import build_avatar
-
     avatar, _ = build_avatar(synth_bench[0] / "subject_00", tiny_config)
     with torch.no_grad():
         torch.nn.init.normal_(avatar.geometry_net.head.weight, std=0.1)
@@ -95,34 +116,37 @@ def test_dynamic_offsets_live_on_the_neck_only(synth_bench, tiny_config):
     assert avatar.head.num_vertices >= 4570  # the default template keeps the lower neck
 
 
-def test_the_energies_reach_below_the_scored_neck_cut_when_the_lower_neck_is_kept(synth_bench, tiny_config):
-    """With the lower neck kept, the silhouette term sees mask pixels between the scored area's
-    bound (the cut's ring) and the kept neck's end; what :func:`evaluate` scores stops at the cut."""
-    from headforge.avatars.nha.trainer import FrameData, _above_neck, build_avatar, composites, losses
+def test_the_energies_reach_below_the_neck_cut_and_the_scores_follow_the_tracked_head(synth_bench, tiny_config):
+    """With the lower neck kept, the silhouette term sees mask pixels below NHA's cut; what the
+    protocol scores is the tracked head model's region, which the avatar's own template does not
+    change (the same pixels with and without the lower neck)."""
+    from dataclasses import replace
+
+    from headforge.avatars.nha.method import _above_neck, losses
 
     dataset = synth_bench[0] / "subject_00"
     avatar, _ = build_avatar(dataset, tiny_config)
+    cut, _ = build_avatar(dataset, replace(tiny_config, remove_lower_neck=True))
     res = tiny_config.resolution
     data = FrameData(dataset, "val", res)
     batch = data.batch(torch.arange(2))
     with torch.no_grad():
         verts = avatar.pose(avatar.frame_params(batch["index"]))[0]
-        scored = _above_neck(avatar.neck_ring, verts, data.K, res)
+        cut_verts = cut.pose(cut.frame_params(batch["index"]))[0]
         trained = _above_neck(avatar.train_ring, verts, data.K, res)
-        band = trained & ~scored  # rows the energies see and the scores do not
-        assert band.any() and not (scored & ~trained).any()
+        cut_rows = _above_neck(cut.train_ring, cut_verts, data.K, res)
+        band = trained & ~cut_rows  # rows the kept neck's energies see and the cut's do not
+        assert band.any() and not (cut_rows & ~trained).any()
         flipped = dict(batch, mask=torch.where(band, 1 - batch["mask"], batch["mask"]))
         sil = [losses(avatar, b, data.K, tiny_config, "align")["silhouette"] for b in (batch, flipped)]
         assert not torch.isclose(sil[0], sil[1])
-        _, _, gt, _ = composites(avatar, batch, data.K, tiny_config, matte=False)
-        _, _, gt_flipped, _ = composites(avatar, flipped, data.K, tiny_config, matte=False)
-        assert torch.equal(gt, gt_flipped)
+    region = batch["region"]  # the protocol's head region: from the tracked head model, per frame
+    assert region.any(-1).any(-1).all() and (~region).any()
+    assert (region & (batch["mask"] > 0.5)).sum() > 0.8 * ((batch["mask"] > 0.5) & trained).sum() * 0.5
 
 
 def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
     from dataclasses import replace
-
-    from headforge.avatars.nha.trainer import build_avatar
 
     avatar, _ = build_avatar(synth_bench[0] / "subject_00", replace(tiny_config, laplacian_scalp=0.37))
     scalp = avatar.head.region("scalp")
@@ -145,8 +169,6 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     same either way."""
     from dataclasses import replace
 
-    from headforge.avatars.nha.trainer import build_avatar
-
     subject = synth_bench[0] / "subject_00"
     plain, _ = build_avatar(subject, replace(tiny_config, laplacian_face_cut=False))
     cut, _ = build_avatar(subject, replace(tiny_config, laplacian_face_cut=True))
@@ -168,14 +190,14 @@ def test_the_face_laplacian_cut_leaves_the_face_free_of_scalp_offsets(synth_benc
     assert torch.allclose(plain.laplacian_term(bump), cut.laplacian_term(bump), rtol=1e-5, atol=1e-7)
 
 
-def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_scores_above_the_same_neck_cut(synth_bench, tiny_config):
+def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_trains_down_to_its_end(synth_bench, tiny_config):
     """``remove_lower_neck=False`` (the default) trains on the whole head model, True is App. A.1's cut:
-    no vertex is dropped; the ring that bounds the scored image area is the cut's, the same points
-    in both templates, while the energies' area reaches down to the kept neck's open end."""
+    no vertex is dropped; NHA's cut ring is the same points in both templates, while the
+    energies' area reaches down to the kept neck's open end."""
     from dataclasses import replace
 
-    from headforge.avatars.nha.trainer import build_avatar
     from headforge.head import load_data
+    from headforge.head.topology import neck_cut_ring
 
     subject = synth_bench[0] / "subject_00"
     cut, _ = build_avatar(subject, replace(tiny_config, remove_lower_neck=True))
@@ -184,11 +206,10 @@ def test_keeping_the_lower_neck_keeps_every_head_model_vertex_and_scores_above_t
     lower = len(base.regions["lower_neck"])
     assert lower > 0
     assert kept.head.num_vertices == cut.head.num_vertices + lower == len(base.v_template)
-    ring = lambda a: np.sort(np.round(a.head.v_template[a.neck_ring].numpy(), 6), axis=0)  # noqa: E731
-    assert len(cut.neck_ring) > 0
-    np.testing.assert_array_equal(ring(kept), ring(cut))
     assert kept.head.v_template[:, 1].min() < cut.head.v_template[:, 1].min() - 0.005  # the neck goes lower
-    assert torch.equal(cut.train_ring, cut.neck_ring)
+    ring = np.sort(np.round(np.asarray(base.v_template, np.float32)[neck_cut_ring(base)], 6), axis=0)
+    cut_ring = np.sort(np.round(cut.head.v_template[cut.train_ring].numpy(), 6), axis=0)
+    np.testing.assert_array_equal(ring, cut_ring)  # the cut template's open end is NHA's cut
     kept_train_y, cut_train_y = (a.head.v_template[a.train_ring, 1].mean() for a in (kept, cut))  # +y up
     assert kept_train_y < cut_train_y - 0.005
 
@@ -199,7 +220,6 @@ def test_the_shell_laplacian_leaves_an_even_hair_shell_free_and_the_rest_as_befo
     off the scalp score as without it."""
     from dataclasses import replace
 
-    from headforge.avatars.nha.trainer import build_avatar
     from headforge.head.topology import directed_edges
 
     subject = synth_bench[0] / "subject_00"
@@ -233,8 +253,6 @@ def test_the_shell_laplacian_leaves_an_even_hair_shell_free_and_the_rest_as_befo
 def test_offsets_on_the_neck_rows_equal_the_full_network_evaluation(synth_bench, tiny_config):
     """The conditioned G runs on the neck-fade vertices only; values and neck-pose gradients are
     those of NHA's blend over every vertex (the pure-PyTorch reference below)."""
-    from headforge.avatars.nha.trainer import build_avatar
-
     avatar, _ = build_avatar(synth_bench[0] / "subject_00", tiny_config)
     torch.manual_seed(0)
     with torch.no_grad():
@@ -260,7 +278,6 @@ def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_conf
     like the tracked head model, and driving sequences are converted the same way."""
     from safetensors.torch import load_file
 
-    from headforge.avatars.nha.trainer import build_avatar
     from headforge.head.model import POSE_ARGS
 
     dataset = synth_bench[0] / "subject_00"
@@ -287,7 +304,7 @@ def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_conf
 
 def test_eyelid_term_measures_the_eye_opening():
     from headforge.avatars.nha.model import EYELID_PAIRS
-    from headforge.avatars.nha.trainer import eyelid_term
+    from headforge.avatars.nha.method import eyelid_term
 
     torch.manual_seed(0)
     detected = torch.rand(2, 478, 2) * 200
@@ -303,7 +320,6 @@ def test_eyelid_term_measures_the_eye_opening():
 
 
 def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, tiny_config):
-    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar
     from headforge.head.topology import vertex_normals
     from headforge.render import mesh
 
@@ -325,7 +341,7 @@ def test_normal_patches_on_the_bounding_box_equal_the_whole_image(synth_bench, t
 
 
 def test_albedo_tv_charges_a_smooth_ramp_in_full_and_a_step_only_at_its_edge():
-    from headforge.avatars.nha.trainer import albedo_tv
+    from headforge.avatars.nha.method import albedo_tv
 
     inside = torch.zeros(1, 8, 8, dtype=torch.bool)
     inside[:, 1:7, 1:7] = True
@@ -347,7 +363,7 @@ def test_a_shading_avatar_lights_its_albedo_at_the_rendered_normals(synth_bench,
     from dataclasses import replace
 
     from headforge.avatars.nha.export import bake_texture
-    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar, losses
+    from headforge.avatars.nha.method import losses
     from headforge.render.shading import constant_sh
 
     dataset = synth_bench[0] / "subject_00"
@@ -385,7 +401,7 @@ def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_co
     """Against the avatar's own silhouette the outline term is about a pixel: the occluding rims
     inside it (the nose's flanks, a cheek, the far side of the head) are left out rather than
     pulled toward the outline, which they are far from."""
-    from headforge.avatars.nha.trainer import FrameData, _above_neck, _cameras, build_avatar, contour_term, outer_band
+    from headforge.avatars.nha.method import _above_neck, contour_term, outer_band
     from headforge.render import mesh
 
     dataset = synth_bench[0] / "subject_00"
@@ -397,7 +413,11 @@ def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_co
         covered = mesh.rasterize(_cameras(data.K, 2, res), verts, avatar.head.faces).face_id >= 0
     band = outer_band(covered, width=2)
     assert band[~covered].all() and not band[covered].all() and band[covered].any()
-    area = _above_neck(avatar.neck_ring, verts, data.K, res)
+    from headforge.head import load_data
+    from headforge.head.topology import neck_cut_ring
+
+    cut = torch.as_tensor(neck_cut_ring(load_data("open-head")))  # the quick template is open-head's own
+    area = _above_neck(cut, verts, data.K, res)
     own = covered.float() * area
     kept = contour_term(avatar, verts, own, area, data.K, res, covered) * res  # pixels
     everything = contour_term(avatar, verts, own, area, data.K, res) * res
@@ -406,7 +426,7 @@ def test_contour_term_leaves_out_rims_inside_the_silhouette(synth_bench, tiny_co
 
 
 def test_face_oval_masks_fill_the_detected_loop():
-    from headforge.avatars.nha.trainer import face_oval_masks
+    from headforge.avatars.frames import face_oval_masks
     from headforge.head.landmarks import FACE_OVAL_LOOP
 
     angles = torch.linspace(0, 2 * np.pi, len(FACE_OVAL_LOOP) + 1)[:-1]
@@ -427,7 +447,8 @@ def test_face_oval_masks_fill_the_detected_loop():
 def test_semantic_term_compares_the_rendered_face_oval_with_the_detected_one(synth_bench, tiny_config):
     """The avatar's face-oval region (template vertices inside the landmark loop) renders where
     its own projected oval landmarks outline it, and the semantic term moves the geometry."""
-    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar, face_oval_masks, losses
+    from headforge.avatars.frames import face_oval_masks
+    from headforge.avatars.nha.method import losses
 
     dataset = synth_bench[0] / "subject_00"
     avatar, _ = build_avatar(dataset, tiny_config)
@@ -456,7 +477,6 @@ def test_semantic_term_compares_the_rendered_face_oval_with_the_detected_one(syn
 def test_face_region_matches_full_image_barycentric_interpolation(synth_bench, tiny_config):
     """The face region differentiates only the triangles straddling the oval's border; values
     and vertex gradients equal interpolating with differentiable barycentrics everywhere."""
-    from headforge.avatars.nha.trainer import FrameData, _cameras, build_avatar
     from headforge.render import mesh
 
     dataset = synth_bench[0] / "subject_00"
@@ -489,7 +509,8 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
     frames outside ``rows`` and the networks untouched."""
     from dataclasses import replace
 
-    from headforge.avatars.nha.trainer import FrameData, _subset, align_frames, build_avatar, losses, validate
+    from headforge.avatars.engine import fit_frames, validate
+    from headforge.avatars.nha.method import NHAMethod, losses
 
     config = replace(tiny_config, resolution=128)
     dataset = synth_bench[0] / "subject_00"
@@ -514,7 +535,7 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
             return sum(losses(avatar, data.batch(rows), data.K, config, "align").values()).item()
 
     before, moved = data_terms(), (projected() - target).norm(dim=-1).mean()
-    align_frames(avatar, data, data.K, config, steps=25, rows=rows)
+    fit_frames(NHAMethod(), avatar, data, config, steps=25, rows=rows)
     assert data_terms() < 0.7 * before
     assert (projected() - target).norm(dim=-1).mean() < 0.5 * moved  # the image-space shift mostly undone
     others = torch.ones(len(tracked), dtype=torch.bool)
@@ -527,14 +548,18 @@ def test_align_frames_recovers_a_shifted_frame_and_touches_no_other(synth_bench,
     assert all(p.requires_grad for p in avatar.geometry_net.parameters())
     # validation during training fits its frames but gives them back their parameters
     frames = {k: v.detach().clone() for k, v in avatar.frames.items()}
-    scores = validate(avatar, _subset(data, torch.tensor([2, 3])), data.K, config)
+    scores = validate(NHAMethod(), avatar, data.subset(torch.tensor([2, 3])), config)
     assert 5 < scores["psnr"] < 60
     assert all(torch.equal(avatar.frames[k].detach(), v) for k, v in frames.items())
 
 
 def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, interrupt_after):
-    from headforge.avatars.nha.trainer import fit, load_run
+    from headforge.avatars.engine import fit as engine_fit
+    from headforge.avatars.run import load_run
     from headforge.cli import app
+
+    def fit(*args, **kwargs):
+        return engine_fit("nha", *args, **kwargs)
 
     dataset = synth_bench[0] / "subject_00"
     run = tmp_path / "run"
@@ -542,9 +567,9 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
         fit(dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(3))
     assert json.loads((run / "state.json").read_text())["iteration"] == 2
     # a run written before a config field existed resumes with that field's default
-    written = json.loads((run / "config.json").read_text())
+    written = json.loads((run / "run.json").read_text())
     del written["config"]["laplacian_scalp"]
-    (run / "config.json").write_text(json.dumps(written))
+    (run / "run.json").write_text(json.dumps(written))
     with pytest.raises(HeadforgeError, match="other settings"):  # ... not with another value of it
         fit(dataset, run, type(tiny_config)(**{**tiny_config.__dict__, "laplacian_scalp": 0.5}), log=lambda m: None)
     logs = []
@@ -552,8 +577,14 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
     assert any("resuming" in m for m in logs)
     assert json.loads((run / "state.json").read_text())["iteration"] == 6
     assert metrics["val_frames"] >= 1 and 5 < metrics["val_psnr"] < 60 and 0 < metrics["val_ssim"] <= 1
-    for name in ("progress.png", "metrics.json", "losses.csv", "checkpoint.safetensors", "geometry.safetensors"):
+    # the protocol's head-only and face PSNR, and the novel views synth writes (+-20 deg here)
+    assert 0 < metrics["val_psnr_head"] < metrics["val_psnr"] and 0 < metrics["val_psnr_face"] < 60
+    assert metrics["novel_yaw+20_frames"] >= 1 and 5 < metrics["novel_yaw+20_psnr"] < 60
+    assert "val_akd_px" in metrics and metrics["val_landmark_frames"] <= metrics["val_frames"]
+    for name in ("progress.png", "metrics.json", "losses.csv", "checkpoint.safetensors", "geometry.safetensors",
+                 "val_worst.png", "run.json", "assets/tracking.safetensors", "assets/dataset.json"):
         assert (run / name).is_file(), name
+    assert str(dataset.parent) not in (run / "run.json").read_text()  # no absolute paths
     assert list((run / "val").glob("*.png"))
     # the exported geometry is what headforge eval reads
     from headforge.metrics.benchmark import evaluate_geometry
@@ -566,7 +597,7 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
         fit(dataset, run, other, log=lambda m: None)
     # the soft matte is fitted after training and scored against the hard edge
     assert 0 <= metrics["matte_sigma_px"] <= 4 and 5 < metrics["val_psnr_hard_edge"] < 60
-    avatar, _, _ = load_run(run)
+    avatar = load_run(run).avatar
     assert float(avatar.matte_sigma) == metrics["matte_sigma_px"]
     runner = CliRunner()
     res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / "obj"), "--frames", "0-1", "--texture-size", "64"])
@@ -585,31 +616,35 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
 
 
 def test_nha_bad_inputs(tmp_path, tiny_config):
-    from headforge.avatars.nha.trainer import fit, load_run
+    from headforge.avatars.engine import fit
+    from headforge.avatars.run import load_run
     from headforge.cli import app
 
     with pytest.raises(HeadforgeError, match="not a headforge run"):
         load_run(tmp_path)
-    (tmp_path / "config.json").write_text(json.dumps({"format": "headforge-run", "method": "point"}))
-    with pytest.raises(HeadforgeError, match="not an NHA run"):
+    # a run folder of the code before the platform (config.json with the dataset's path) is refused
+    (tmp_path / "config.json").write_text(json.dumps({"format": "headforge-run", "method": "nha", "dataset": "/x"}))
+    with pytest.raises(HeadforgeError, match="earlier headforge .*re-run headforge fit"):
         load_run(tmp_path)
-    newer = {"format": "headforge-run", "method": "nha", "dataset": str(tmp_path), "config": {"hair_cards": 3}}
-    (tmp_path / "config.json").write_text(json.dumps(newer))
+    (tmp_path / "config.json").unlink()
+    (tmp_path / "run.json").write_text(json.dumps({"format": "headforge-run", "version": 2, "method": "point"}))
+    with pytest.raises(HeadforgeError, match="unknown avatar method 'point'"):
+        load_run(tmp_path)
+    with pytest.raises(HeadforgeError, match="not a nha run"):
+        load_run(tmp_path, method="nha")
+    newer = {"format": "headforge-run", "version": 2, "method": "nha", "config": {"hair_cards": 3}}
+    (tmp_path / "run.json").write_text(json.dumps(newer))
     with pytest.raises(HeadforgeError, match="another headforge version .*hair_cards"):
         load_run(tmp_path)
-    from headforge.avatars.nha.trainer import NHAConfig
-
-    # A run written before laplacian_face_cut existed trained without it, whatever today's default.
-    assert NHAConfig().laplacian_face_cut is True
-    assert NHAConfig.from_saved({"seed": 3}, tmp_path).laplacian_face_cut is False
-    assert NHAConfig.from_saved({"laplacian_face_cut": True}, tmp_path).laplacian_face_cut is True
-    # ...and one written before remove_lower_neck existed trained on the cut template.
-    assert NHAConfig().remove_lower_neck is False
-    assert NHAConfig.from_saved({"seed": 3}, tmp_path).remove_lower_neck is True
+    (tmp_path / "run.json").write_text("{not json")
+    with pytest.raises(HeadforgeError, match="not valid JSON"):
+        load_run(tmp_path)
     with pytest.raises(HeadforgeError, match="not a headforge dataset"):
-        fit(tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
+        fit("nha", tmp_path / "nothing", tmp_path / "run", tiny_config, log=lambda m: None)
     res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--preset", "fast"])
     assert res.exit_code != 0 and "--preset" in str(res.exception)
+    res = CliRunner().invoke(app, ["fit", "pointy", str(tmp_path), "-o", str(tmp_path / "r")])
+    assert res.exit_code != 0 and "unknown avatar method 'pointy'" in str(res.exception)
     for bad, message in (("tex_grids=256", "NHAConfig field"), ("tex_grid=big", "not a int"), ("subdivide=maybe", "not a bool")):
         res = CliRunner().invoke(app, ["fit", "nha", str(tmp_path), "-o", str(tmp_path / "r"), "--set", bad])
         assert res.exit_code != 0 and message in str(res.exception)
@@ -617,7 +652,8 @@ def test_nha_bad_inputs(tmp_path, tiny_config):
 
 
 def test_learning_rates_decay_along_a_half_cosine_at_the_end():
-    from headforge.avatars.nha.trainer import NHAConfig, lr_factor
+    from headforge.avatars.engine import lr_factor
+    from headforge.avatars.nha.config import NHAConfig
 
     config = NHAConfig.quick()  # 2000 iterations, decay from 1400
     factors = [lr_factor(it, config) for it in range(config.total_iters + 1)]
@@ -629,7 +665,7 @@ def test_learning_rates_decay_along_a_half_cosine_at_the_end():
 
 
 def test_config_overrides_parse_as_the_field_types():
-    from headforge.avatars.nha.trainer import NHAConfig
+    from headforge.avatars.nha.config import NHAConfig
 
     config = NHAConfig.quick()
     for assignment in ("tex_grid=256", "lr_grid=0.02", "subdivide=true", "normal_channels=32,32,16"):
@@ -657,44 +693,47 @@ def test_device_choice_is_checked(tmp_path, monkeypatch):
     assert not (tmp_path / "r").exists()
 
 
-def record_chunks(monkeypatch, trainer, steps_field: str, die_at: int) -> tuple[list, dict]:
-    """Patch ``trainer.align_frames`` to record the ``rows`` of each call made with
+def record_chunks(monkeypatch, steps_field: str, die_at: int) -> tuple[list, dict]:
+    """Patch the engine's ``fit_frames`` to record the ``rows`` of each call made with
     ``cfg.<steps_field>`` steps and a row chunk (the training-frame alignment: align_steps; the
     held-out frames' test-time fitting: tto_steps) and to raise KeyboardInterrupt (a kill) on
     the ``die["at"]``-th such call. Returns (chunks, die)."""
-    real = trainer.align_frames
+    from headforge.avatars import engine
+
+    real = engine.fit_frames
     chunks, die = [], {"at": die_at}
 
-    def recording(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+    def recording(method, avatar, data, cfg, steps, photometric_steps=0, rows=None):
         if rows is not None and steps == getattr(cfg, steps_field):
             chunks.append(rows.tolist())
             if len(chunks) == die["at"]:
                 raise KeyboardInterrupt
-        return real(avatar, data, K, cfg, steps, photometric_steps, rows)
+        return real(method, avatar, data, cfg, steps, photometric_steps, rows)
 
-    monkeypatch.setattr(trainer, "align_frames", recording)
+    monkeypatch.setattr(engine, "fit_frames", recording)
     return chunks, die
 
 
 def test_a_run_killed_during_the_alignment_resumes_there(synth_bench, tiny_config, tmp_path, monkeypatch):
     """Alignment checkpoints every ALIGN_CHECKPOINT_FRAMES frames: a kill in the middle of it
     loses at most that many frames' alignment, and the resumed run aligns only the rest."""
-    from headforge.avatars.nha import trainer
+    from headforge.avatars.engine import fit
+    from headforge.avatars.nha import method
 
     dataset = synth_bench[0] / "subject_00"
     config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
-    monkeypatch.setattr(trainer, "ALIGN_CHECKPOINT_FRAMES", 4)
-    chunks, die = record_chunks(monkeypatch, trainer, "align_steps", die_at=2)
+    monkeypatch.setattr(method, "ALIGN_CHECKPOINT_FRAMES", 4)
+    chunks, die = record_chunks(monkeypatch, "align_steps", die_at=2)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        trainer.fit(dataset, run, config, log=lambda m: None)
+        fit("nha", dataset, run, config, log=lambda m: None)
     state = json.loads((run / "state.json").read_text())
     assert (state["iteration"], state["aligned"]) == (config.geometry_iters, 4)
     chunks.clear()
     die["at"] = -1
     logs = []
-    trainer.fit(dataset, run, config, log=logs.append)
-    n_train = len(trainer.FrameData(dataset, "train", config.resolution))
+    fit("nha", dataset, run, config, log=logs.append)
+    n_train = len(FrameData(dataset, "train", config.resolution))
     assert chunks[0] == [4, 5, 6, 7] and chunks[-1][-1] == n_train - 1 and len(chunks) == -(-(n_train - 4) // 4)
     assert any(f"aligning training frames 4..{n_train}" in m for m in logs)
     assert json.loads((run / "state.json").read_text())["aligned"] == n_train
@@ -704,46 +743,45 @@ def test_a_run_killed_during_the_test_time_fitting_resumes_there(synth_bench, ti
     """The held-out frames' test-time fitting checkpoints every TTO_CHECKPOINT_FRAMES frames: a
     kill in the middle of it keeps the frames fitted so far, and the resumed run neither trains
     nor fits the matte again, fits only the remaining frames and then writes the metrics."""
-    from headforge.avatars.nha import trainer
+    from headforge.avatars import engine
+    from headforge.avatars.nha import method
+    from headforge.avatars.run import load_run
 
     dataset = synth_bench[0] / "subject_00"
     config = type(tiny_config)(**{**tiny_config.__dict__, "align_steps": 1, "tto_steps": 2})
-    monkeypatch.setattr(trainer, "TTO_CHECKPOINT_FRAMES", 4)
-    chunks, die = record_chunks(monkeypatch, trainer, "tto_steps", die_at=2)
-    real_matte, mattes = trainer.fit_matte, []
+    monkeypatch.setattr(engine, "TTO_CHECKPOINT_FRAMES", 4)
+    chunks, die = record_chunks(monkeypatch, "tto_steps", die_at=2)
+    real_matte, mattes = method.fit_matte, []
 
     def counting_matte(*args, **kwargs):
         mattes.append(1)
         return real_matte(*args, **kwargs)
 
-    monkeypatch.setattr(trainer, "fit_matte", counting_matte)
+    monkeypatch.setattr(method, "fit_matte", counting_matte)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        trainer.fit(dataset, run, config, log=lambda m: None)
+        engine.fit("nha", dataset, run, config, log=lambda m: None)
     state = json.loads((run / "state.json").read_text())
     assert (state["iteration"], state["tested"]) == (config.total_iters, 4)
     assert not (run / "metrics.json").exists() and len(mattes) == 1
-    killed = trainer.load_run(run)[0]
+    killed = load_run(run).avatar
     fitted, sigma = killed.frames["expression"].detach().clone(), float(killed.matte_sigma)
     chunks.clear()
     die["at"] = -1
     losses_before = (run / "losses.csv").read_text()
-    metrics = trainer.fit(dataset, run, config, log=lambda m: None)
-    val = trainer.FrameData(dataset, "val", config.resolution)
+    metrics = engine.fit("nha", dataset, run, config, log=lambda m: None)
+    val = FrameData(dataset, "val", config.resolution)
     n_val = len(val)
     assert n_val > 4 and [r for c in chunks for r in c] == list(range(4, n_val))  # only the rest, once
     assert len(mattes) == 1 and (run / "losses.csv").read_text() == losses_before  # no training, no new matte
     assert json.loads((run / "metrics.json").read_text())["val_psnr"] == metrics["val_psnr"]
     assert metrics["matte_sigma_px"] == pytest.approx(sigma)
-    resumed = trainer.load_run(run)[0].frames["expression"].detach()
+    resumed = load_run(run).avatar.frames["expression"].detach()
     first = val.index[:4]  # the frames fitted before the kill keep their parameters
     assert torch.equal(resumed[first], fitted[first])
 
 
-def test_soft_matte_changes_only_the_edge_and_old_runs_load_without_it(synth_bench, tiny_config, tmp_path):
-    from safetensors.torch import load_file, save_file
-
-    from headforge.avatars.nha.trainer import FrameData, _cameras, _load_weights, build_avatar
+def test_soft_matte_changes_only_the_edge(synth_bench, tiny_config):
 
     dataset = synth_bench[0] / "subject_00"
     avatar, _ = build_avatar(dataset, tiny_config)
@@ -758,34 +796,26 @@ def test_soft_matte_changes_only_the_edge_and_old_runs_load_without_it(synth_ben
     edge = (hard.coverage > 0) & (hard.coverage < 1)
     near_edge = torch.nn.functional.max_pool2d(edge.float()[:, None], 2 * 5 + 1, 1, 5)[:, 0] > 0  # 3 sigma + 1 px
     assert changed.any() and not (changed & ~near_edge).any()
-    # a checkpoint written before the matte existed loads with the hard edge
-    path = tmp_path / "old.safetensors"
-    state = {k: v for k, v in avatar.state_dict().items() if not k.startswith("matte_")}
-    save_file({k: v.contiguous() for k, v in state.items()}, str(path))
-    _load_weights(avatar, path)
-    assert float(avatar.matte_sigma) == 0
-    assert set(load_file(str(path))) == set(state)
 
 
 def test_in_training_validation_fits_for_val_tto_steps_and_restores_the_frames(monkeypatch):
     from types import SimpleNamespace
 
-    from headforge.avatars.nha import trainer
+    from headforge.avatars import engine
+    from headforge.avatars.nha.config import NHAConfig
 
-    config = trainer.NHAConfig.quick()
+    config = NHAConfig.quick()
     assert config.val_tto_steps < config.tto_steps
     calls = []
 
-    def fake_align(avatar, data, K, cfg, steps, photometric_steps=0, rows=None):
+    def fake_fit(method, avatar, data, cfg, steps, photometric_steps=0, rows=None):
         calls.append(steps)
         avatar.frames["expression"][data.index] += 1.0  # the fitting moves the held-out frames
 
-    monkeypatch.setattr(trainer, "align_frames", fake_align)
-    monkeypatch.setattr(trainer, "evaluate", lambda avatar, data, K, cfg, out_dir=None: {"psnr": 0.0})
+    monkeypatch.setattr(engine, "fit_frames", fake_fit)
+    monkeypatch.setattr(engine, "score", lambda method, avatar, data, cfg, out_dir=None: ({"psnr": 0.0}, {}))
     avatar = SimpleNamespace(frames={"expression": torch.zeros(5, 3)})
     data = SimpleNamespace(index=torch.tensor([1, 3]))
-    trainer.validate(avatar, data, None, config)
-    trainer.test_time_optimise(avatar, data, None, config)
-    assert calls == [config.val_tto_steps, config.tto_steps]
-    assert avatar.frames["expression"][[0, 2, 4]].abs().sum() == 0
-    assert avatar.frames["expression"][[1, 3]].eq(1.0).all()  # validate restored its fit; the final fit stays
+    engine.validate(None, avatar, data, config)
+    assert calls == [config.val_tto_steps]
+    assert avatar.frames["expression"].abs().sum() == 0  # validate restored its fit

@@ -95,7 +95,7 @@ def test_tracker_recovers_face_geometry(synthetic, open_head_data, open_head):
                              TrackerConfig(focal=K[0, 0]))
     camera, aligned = _face_errors_mm(open_head, result, verts_cam, face)
     # Camera-space error: depth and head size trade off (a larger head farther away projects the
-    # same), so this carries the scale ambiguity. Measured 7.1 mm.
+    # same), so this carries the scale ambiguity. Measured 7.1 mm (7.42 mm on 2026-12-01).
     assert camera < 10.0, camera
     # Shape of the face up to a rigid motion (per frame): landmarks alone measure 2.75 mm on the
     # hosts of 2026-11, 1.57 mm on that of 2026-12-01 (MediaPipe's identity-dependent bias limits the shape).
@@ -103,8 +103,9 @@ def test_tracker_recovers_face_geometry(synthetic, open_head_data, open_head):
     blink = result.frames["expression"][:, open_head.expression_names.index("eyeBlinkLeft")]
     assert blink[len(frames) // 2] > blink.median() + 0.3  # the blink frame is tracked as a blink
 
-    # The photometric stage (shading + silhouette against the crops) refines the shape: measured
-    # 2.14 mm aligned / 4.7 mm in camera space (issue 4 asks for <= 2 mm).
+    # The photometric stage (shading + silhouette against the crops) refines the shape. Issue 4
+    # asks for <= 2 mm aligned, and that is the bound: measured 1.37 mm aligned / 3.53 mm in camera
+    # space on the host of 2026-12-01 (2.14 / 4.7 mm on the hosts of 2026-11, which would fail it).
     config = PhotometricConfig.quick()
     size = config.size
     images = np.stack([cv2.resize(f, (size, size), interpolation=cv2.INTER_AREA) for f in frames])
@@ -114,8 +115,8 @@ def test_tracker_recovers_face_geometry(synthetic, open_head_data, open_head):
                               TrackerConfig(focal=K[0, 0]), photometric=target)
     camera_p, aligned_p = _face_errors_mm(open_head, refined, verts_cam, face)
     # The landmarks-only baseline varies between hosts (2.75 mm on the hosts of 2026-11, 1.57 mm on
-    # the one of 2026-12-01, 2.14 and 1.37 mm after refinement), so the gain is asked as a share.
-    assert aligned_p < 2.35 and aligned_p < 0.92 * aligned, (aligned, aligned_p)
+    # the one of 2026-12-01), so the gain is asked as a share (measured 0.87 there).
+    assert aligned_p <= 2.0 and aligned_p < 0.92 * aligned, (aligned, aligned_p)
     assert camera_p < camera, (camera, camera_p)
     assert refined.median_px() < 2.5 and refined.photometric_l1 < 0.08
 
@@ -200,7 +201,9 @@ def test_dataset_fps_is_the_sources_rate(synthetic, tmp_path, monkeypatch):
 def test_transforms_reproduce_the_tracked_projection(tmp_path, open_head):
     """Projecting the canonical head (root pose zeroed) with the exported camera equals projecting
     the tracked camera-space head with K."""
-    from headforge.data.dataset import FLIP, head_to_camera
+    from headforge.head.pose import flip_matrix, head_to_camera_matrices as head_to_camera
+
+    FLIP = flip_matrix()
 
     gen = torch.Generator().manual_seed(0)
     root, trans = 0.3 * torch.randn(2, 3, generator=gen), torch.tensor([[0.01, 0.02, 0.6], [-0.02, 0.0, 0.5]])

@@ -22,7 +22,6 @@ from headforge.render.camera import Cameras
 if TYPE_CHECKING:
     from headforge.avatars.config import EngineConfig
     from headforge.avatars.engine import TrainingContext
-    from headforge.avatars.frames import FrameData
     from headforge.avatars.run import RunAssets
 
 

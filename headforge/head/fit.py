@@ -15,8 +15,8 @@ import torch
 from headforge.errors import HeadforgeError
 from headforge.head.landmarks import FACE_OVAL, N_MEDIAPIPE, detect_mediapipe
 from headforge.head.model import HeadModel
-
-FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # canonical head axes (y up, +z to viewer) -> OpenCV
+from headforge.head.pose import head_to_camera
+from headforge.render.camera import project_points
 
 
 @dataclass
@@ -47,12 +47,6 @@ class ImageFit:
     vertices_cam: np.ndarray  # (V, 3) camera-space vertices (metres)
     median_px: float
     median_px_inner: float
-
-
-def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """(..., N, 3) camera-space points -> (..., N, 2) pixels."""
-    uvw = points_cam @ K.T
-    return uvw[..., :2] / uvw[..., 2:3].clamp(min=1e-6)
 
 
 def fit_image(model: HeadModel, image: np.ndarray, config: ImageFitConfig = ImageFitConfig()) -> ImageFit:
@@ -91,7 +85,7 @@ def fit_image(model: HeadModel, image: np.ndarray, config: ImageFitConfig = Imag
 
     def landmarks_cam():
         out = model(**params())
-        return out, out.landmarks @ FLIP.T + trans[:, None]
+        return out, head_to_camera(out.landmarks, trans)
 
     scale = 1.0 / max(eye_image, 1.0)  # loss in units of the inter-ocular distance
     for step in range(config.steps):
@@ -99,7 +93,7 @@ def fit_image(model: HeadModel, image: np.ndarray, config: ImageFitConfig = Imag
         rigid_only = step < config.steps // 4
         opt.zero_grad()
         _, lmk = landmarks_cam()
-        err = (project(lmk, K)[0] - target).norm(dim=-1) * scale
+        err = (project_points(lmk, K)[0] - target).norm(dim=-1) * scale
         loss = (weight * torch.nn.functional.huber_loss(err, torch.zeros_like(err), reduction="none", delta=0.05)).mean()
         loss = loss + config.shape_prior * shape.pow(2).mean() + config.expression_prior * torch.sigmoid(expr_logit).mean()
         loss.backward()
@@ -110,8 +104,8 @@ def fit_image(model: HeadModel, image: np.ndarray, config: ImageFitConfig = Imag
         opt.step()
     with torch.no_grad():
         out, lmk = landmarks_cam()
-        projected = project(lmk, K)[0].numpy()
-        verts_cam = (out.vertices @ FLIP.T + trans[:, None])[0].numpy()
+        projected = project_points(lmk, K)[0].numpy()
+        verts_cam = head_to_camera(out.vertices, trans)[0].numpy()
     errors = np.linalg.norm(projected - detected, axis=1)
     inner = np.setdiff1d(np.arange(N_MEDIAPIPE), FACE_OVAL)
     fitted = {k: v.detach() for k, v in params().items()} | {"translation": trans.detach()}

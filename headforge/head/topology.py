@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
+from headforge.geometry import vertex_normals  # noqa: F401  (re-exported: the head floor's users import it here)
 from headforge.head.model import HeadModelData
 
 
@@ -299,16 +300,6 @@ def laplacian_smooth(vertices: torch.Tensor, faces: torch.Tensor, strength: torc
         mean = total / degree.clamp(min=1)[:, None]
         x = x + s * (mean - x)
     return x
-
-
-def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted unit vertex normals, (..., V, 3); differentiable."""
-    tri = vertices[..., faces, :]  # (..., F, 3, 3)
-    face_n = torch.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
-    normals = torch.zeros_like(vertices)
-    for k in range(3):
-        normals = normals.index_add(-2, faces[:, k], face_n)
-    return torch.nn.functional.normalize(normals, dim=-1, eps=1e-12)
 
 
 def tbn_frames(vertices: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, uv_faces: torch.Tensor) -> torch.Tensor:

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from headforge.head.model import HeadModel
-from headforge.head.topology import vertex_normals
+from headforge.geometry import vertex_normals
 from headforge.render import mesh, points, shading
 from headforge.render.camera import Cameras, look_at_head
 
@@ -73,3 +73,20 @@ def turntable_frames(head: HeadModel, n_frames: int = 60, resolution: int = 256,
             mask = splat.mask[0, ..., None]
             right = torch.where(mask > 0.05, splat.features[0] / mask.clamp(min=1e-6), background)
         yield torch.cat([left, right], dim=1).clamp(0, 1).numpy()
+
+
+def write_turntable(head: HeadModel, output, n_frames: int = 60, resolution: int = 256, n_points: int = 100_000,
+                    fps: float = 30.0):
+    """Write the turntable as an MP4 at ``output`` and its first frame as a PNG beside it;
+    returns the PNG's path."""
+    from headforge.render.io import write_mp4, write_png
+
+    first = {}
+
+    def frames():
+        for frame in turntable_frames(head, n_frames, resolution, n_points):
+            first.setdefault("frame", frame)
+            yield frame
+
+    write_mp4(output, frames(), fps=fps, total=n_frames, description=f"rendering {n_frames} frames")
+    return write_png(output.with_suffix(".png"), first["frame"])

@@ -59,7 +59,7 @@ def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeomet
     from headforge.data.dataset import load_tracking, read_meta
     from headforge.head import load_data
     from headforge.head.model import HeadModel
-    from headforge.track.tracker import FLIP, FRAME_PARAMS
+    from headforge.head.pose import FRAME_KEYS, head_to_camera
 
     dataset = Path(dataset)
     meta = read_meta(dataset)
@@ -71,8 +71,8 @@ def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeomet
         raise HeadforgeError(f"{dataset} has {T} frames, the ground truth asks for frame {int(frames.max())}")
     idx = torch.from_numpy(frames)
     with torch.no_grad():
-        out = head(shape=tracked["shape"].expand(len(frames), -1), **{k: tracked[k][idx] for k in FRAME_PARAMS[:-1]})
-        verts = out.vertices @ torch.as_tensor(FLIP, dtype=out.vertices.dtype).T + tracked["translation"][idx][:, None]
+        out = head(shape=tracked["shape"].expand(len(frames), -1), **{k: tracked[k][idx] for k in FRAME_KEYS[:-1]})
+        verts = head_to_camera(out.vertices, tracked["translation"][idx])
     V = verts.shape[1]
     face = np.zeros(V, bool)
     face[data.regions["face"]] = True

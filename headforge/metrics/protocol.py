@@ -123,8 +123,8 @@ def score_frames(rgb: torch.Tensor, coverage: torch.Tensor, image: torch.Tensor,
     out = {"psnr": np.array([psnr(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)]),
            "ssim": np.array([ssim(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)]),
            "l1": np.array([l1(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)]),
-           "psnr_head": _masked_psnr(pred, gt, head).double().numpy(),
-           "psnr_face": _masked_psnr(pred, gt, face & (mask > 0.5)).double().numpy()}
+           "psnr_head": _masked_psnr(pred, gt, head).double().cpu().numpy(),
+           "psnr_face": _masked_psnr(pred, gt, face & (mask > 0.5)).double().cpu().numpy()}
     if min(rgb.shape[1:3]) >= MS_SSIM_MIN_SIZE:
         out["ms_ssim"] = np.array([ms_ssim(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)])
     out["cpbd"] = np.array([cpbd(pred[b].cpu().numpy()) for b in range(B)])
@@ -177,9 +177,13 @@ class TrackedHead:
         return head_to_camera(out.vertices, params["translation"].float())
 
     def regions(self, params: dict[str, torch.Tensor], cameras: Cameras, chunk: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-        """(head region, face region), (B, H, W) bool, of the frames ``params`` seen by ``cameras``."""
+        """(head region, face region), (B, H, W) bool on ``cameras``' device, of the frames
+        ``params`` seen by ``cameras`` (computed on the CPU, where the tracked model lives)."""
         from headforge.head.pose import select
 
+        device = cameras.K.device
+        cameras = cameras.to("cpu")
+        params = {k: v.cpu() for k, v in params.items()}
         heads, faces = [], []
         B = params["translation"].shape[0]
         for start in range(0, B, chunk):
@@ -189,4 +193,4 @@ class TrackedHead:
                                    self.face_vertices, self.above_cut, cams)
             heads.append(h)
             faces.append(f)
-        return torch.cat(heads), torch.cat(faces)
+        return torch.cat(heads).to(device), torch.cat(faces).to(device)

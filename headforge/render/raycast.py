@@ -68,7 +68,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (V, 3), numpy in and out."""
     import torch
 
-    from headforge.head.topology import vertex_normals as torch_vertex_normals
+    from headforge.geometry import vertex_normals as torch_vertex_normals
 
     return torch_vertex_normals(torch.from_numpy(np.asarray(vertices, np.float64)),
                                 torch.from_numpy(np.asarray(faces, np.int64))).numpy()

@@ -97,7 +97,7 @@ def render_batch(model: HeadModel, vertices: torch.Tensor, appearance: Appearanc
     (B, S, S) and the fragments."""
     B = vertices.shape[0]
     faces = model.faces
-    cams = Cameras(K.expand(B, 3, 3), torch.eye(3).expand(B, 3, 3), torch.zeros(B, 3), size, size)
+    cams = Cameras.at_origin(K, B, size)
     frags = mesh.rasterize(cams, vertices.detach(), faces)
     bary = mesh.barycentrics(frags, cams, vertices, faces)
     normals = F.normalize(mesh.interpolate(vertex_normals(vertices, faces), frags, faces, bary), dim=-1, eps=1e-8)

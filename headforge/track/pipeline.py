@@ -28,14 +28,23 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from headforge.data import dataset as ds
-from headforge.data.preprocess import ClipDetections, Segmenter, crop, crop_windows, detect_clip, transform_points
+from headforge.data.preprocess import (
+    ClipDetections,
+    Segmenter,
+    crop,
+    crop_windows,
+    detect_clip,
+    transform_points,
+)
 from headforge.data.video import FOLDER_FPS, image_files, iter_frames, video_info
 from headforge.errors import HeadforgeError
-from headforge.paths import open_partial
 from headforge.head.landmarks import LandmarkSpec
 from headforge.head.model import HeadModel
+from headforge.head.pose import FRAME_KEYS, head_to_camera
+from headforge.paths import open_partial
+from headforge.render.camera import project_points
 from headforge.track.photometric import PhotometricConfig, load_target
-from headforge.track.tracker import FLIP, FRAME_PARAMS, TrackerConfig, project, track_landmarks
+from headforge.track.tracker import TrackerConfig, track_landmarks
 
 
 @dataclass
@@ -300,8 +309,8 @@ def _camera_vertices(head: HeadModel, tracked: dict, chunk: int = 64) -> np.ndar
         for s in range(0, T, chunk):
             sl = slice(s, s + chunk)
             n = len(tracked["translation"][sl])
-            o = head(shape=tracked["shape"].expand(n, -1), **{k: tracked[k][sl] for k in FRAME_PARAMS[:-1]})
-            out.append((o.vertices @ FLIP.T + tracked["translation"][sl][:, None]).numpy())
+            o = head(shape=tracked["shape"].expand(n, -1), **{k: tracked[k][sl] for k in FRAME_KEYS[:-1]})
+            out.append(head_to_camera(o.vertices, tracked["translation"][sl]).numpy())
     return np.concatenate(out)
 
 
@@ -318,7 +327,7 @@ def _draw_overlay(image, detected, projected, verts_cam, head: HeadModel, K, val
     and lip contours of the detections (green) and of the model (red): closed model lids on
     blink frames are visible at a glance."""
     faces = head.faces.numpy()
-    uv = project(torch.from_numpy(verts_cam).float(), torch.from_numpy(np.asarray(K)).float()).numpy()
+    uv = project_points(torch.from_numpy(verts_cam).float(), torch.from_numpy(np.asarray(K)).float()).numpy()
     tri = verts_cam[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     front = (normal * tri.mean(1)).sum(-1) < 0  # facing the camera at the origin

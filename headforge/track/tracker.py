@@ -22,11 +22,12 @@ import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
-from headforge.head.fit import FLIP, project  # noqa: F401  (re-exported for the pipeline)
 from headforge.head.landmarks import N_MEDIAPIPE, LandmarkSpec
 from headforge.head.model import HeadModel
+from headforge.head.pose import FRAME_KEYS, head_to_camera
+from headforge.render.camera import project_points
 
-FRAME_PARAMS = ("expression", "root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose", "translation")
+FRAME_PARAMS = FRAME_KEYS  # the per-frame parameter record (headforge.head.pose)
 
 
 @dataclass
@@ -110,7 +111,7 @@ class ClipParameters:
 
     def to_camera(self, points: torch.Tensor, idx=slice(None)) -> torch.Tensor:
         """(B, N, 3) posed canonical points of frames ``idx`` -> camera space (metres)."""
-        return points @ FLIP.T + self.trans[idx][:, None]
+        return head_to_camera(points, self.trans[idx])
 
     def K(self) -> torch.Tensor:
         """(3, 3) intrinsics of the ``resolution``^2 crop (differentiable in the focal)."""
@@ -141,7 +142,7 @@ class LandmarkEnergy:
     def project(self) -> torch.Tensor:
         """(T, L, 2) model landmarks in crop pixels."""
         out = self.model(**self.params.model_inputs(), translation=None)
-        return project(self.params.to_camera(out.landmarks), self.params.K())
+        return project_points(self.params.to_camera(out.landmarks), self.params.K())
 
     def __call__(self, stage_all: bool) -> torch.Tensor:
         p, c = self.params, self.config

@@ -1,0 +1,1 @@
+"""The synthetic benchmark (``headforge synth``): talking-head subjects with exact ground truth."""

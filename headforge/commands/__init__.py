@@ -1,0 +1,1 @@
+"""One module per ``headforge`` command group; :mod:`headforge.cli` wires them."""

@@ -1,0 +1,26 @@
+"""``headforge demo``: the main job end to end on the embedded default (:mod:`headforge.demo`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from headforge.commands.common import Bars, console, progress
+
+
+def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
+         video: Optional[Path] = typer.Option(None, help="use this video (first 300 frames) instead of a synthetic subject"),
+         iterations: int = typer.Option(900, help="NHA training iterations (the quick preset's schedule, scaled)"),
+         device: str = typer.Option("auto", help="NHA training device: auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
+    """Synth one small subject (or track --video) -> fit a Neural Head Avatar (quick) -> render
+    val frames, a novel-view orbit and the turntable -> evaluate. Writes a report folder."""
+    from headforge.demo import run_demo
+
+    with Bars() as bars:
+        metrics = run_demo(output, video, iterations, device, log=progress, progress_factory=bars.factory)
+    console.print(f"report written to {output}/ (metrics.md, avatar_val.mp4, avatar_orbit.mp4, nha/progress.png, "
+                  f"export/avatar.obj, turntable.mp4, ...)")
+    print(json.dumps(metrics))

@@ -1,0 +1,50 @@
+"""``headforge fit METHOD DATASET -o RUN``: train any registered avatar method on the engine."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from headforge.commands.common import Bars, console, progress
+from headforge.errors import HeadforgeError
+
+
+def make_config(method, preset: str, iterations: Optional[int], resolution: Optional[int], assignments: list[str]):
+    """The method's config: a preset, then ``--resolution``, ``--iterations`` and ``--set``."""
+    config = method.Config.preset(preset)
+    if resolution is not None:
+        if resolution < 64:
+            raise HeadforgeError(f"--resolution must be >= 64, got {resolution}")
+        config.resolution = resolution
+    if iterations is not None:
+        config.scale_schedule(iterations)
+    for assignment in assignments:
+        config.override(assignment)
+    return config
+
+
+def fit(method: str = typer.Argument(..., help="avatar method, e.g. nha"),
+        dataset: Path = typer.Argument(..., help="a dataset written by headforge track or synth"),
+        output: Path = typer.Option(..., "-o", "--output", help="run folder (resumed when it exists)"),
+        preset: str = typer.Option("quick", help="quick (CPU) or paper (the paper's sizes, for a GPU)"),
+        iterations: Optional[int] = typer.Option(None, help="scale the method's schedule to this many iterations"),
+        resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)"),
+        device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]"),
+        set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE",
+                                                 help="override a config field, e.g. --set tex_grid=256 (repeatable)")) -> None:
+    """Train an avatar (nha: Neural Head Avatars -- geometry MLP offsets + neural texture on the tracked head model)."""
+    from headforge.avatars import registry
+    from headforge.avatars.engine import fit as run_fit
+    from headforge.devices import resolve_device
+
+    m = registry.get(method)
+    config = make_config(m, preset, iterations, resolution, set_ or [])
+    target = resolve_device(device)
+    with Bars() as bars:
+        metrics = run_fit(m, dataset, output, config, log=progress,
+                          progress=bars.factory("training", config.total_iters), device=target)
+    console.print(f"run written to {output}/ (checkpoint, progress.png, val/, val_worst.png, metrics.json)")
+    print(json.dumps(metrics))
