@@ -1,2 +1,2 @@
-"""Data: video and frame-folder decoding, preprocessing (landmarks, masks, crops), the dataset
-format (read and written here), and the synthetic benchmark subjects of ``headforge synth``."""
+"""Data: video and frame-folder decoding, preprocessing (landmarks, masks, crops) and the
+dataset format (read and written here; ``headforge synth``'s subjects are in headforge.bench)."""
