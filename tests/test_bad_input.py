@@ -394,3 +394,31 @@ def test_render_turntable_refuses_bad_numbers_and_outputs(open_head_data, tmp_pa
     blocker.write_text("a file where a folder should be")
     assert_refused(invoke("render", "turntable", "-o", blocker / "turn.mp4", *small), blocker / "turn.mp4", "is a file")
     assert not out.exists() and not list(tmp_path.glob("*.partial.mp4"))
+
+
+# -- resumable work folders: a checkpoint or settings file broken by a killed run ------------
+
+
+def test_an_unreadable_checkpoint_is_redone_not_fatal(tmp_path):
+    from headforge.data.preprocess import ClipDetections
+    from headforge.track.pipeline import _load_checkpoint
+
+    logs = []
+    path = tmp_path / "detections.npz"
+    path.write_bytes(b"PK\x03\x04 half-written zip")
+    assert _load_checkpoint(path, ClipDetections.load, logs.append) is None
+    assert not path.exists() and "detections.npz is unreadable" in logs[0]
+    assert _load_checkpoint(path, ClipDetections.load, logs.append) is None and len(logs) == 1  # absent: silent
+
+
+def test_a_half_written_settings_file_starts_the_run_over(tmp_path):
+    from headforge.paths import open_partial
+
+    work = tmp_path / "out.partial"
+    work.mkdir()
+    (work / "settings.json").write_text('{"resolution": 5')
+    (work / "stale.txt").write_text("from the killed run")
+    logs = []
+    assert open_partial(tmp_path / "out", {"resolution": 512}, logs.append) == work
+    assert not (work / "stale.txt").exists() and "starting over" in logs[0]
+    assert json.loads((work / "settings.json").read_text()) == {"resolution": 512}
