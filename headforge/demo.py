@@ -33,15 +33,15 @@ def demo_config(iterations: int):
 
 def run_demo(output: Path, video: Path | None = None, iterations: int = 900, device: str = "auto", log=print,
              progress_factory=None, synth_frames: tuple[int, int] = (120, 40), synth_resolution: int = 256,
-             config=None) -> dict:
+             config=None, turntable: tuple[int, int, int] = (60, 256, 100_000)) -> dict:
     """The demo into ``output``; returns its metrics. ``config`` overrides :func:`demo_config`
-    (tests use tiny settings)."""
+    and ``turntable`` the turntable's (frames, resolution, points) (tests use tiny settings)."""
     import matplotlib.cbook
 
     from headforge.avatars.engine import fit
     from headforge.avatars.reenact import own_sequence, render_sequence
     from headforge.avatars.run import load_run
-    from headforge.data.video import read_image
+    from headforge.data.video import read_picture
     from headforge.devices import resolve_device
     from headforge.head import create
     from headforge.head.fit import fit_image, overlay
@@ -88,10 +88,10 @@ def run_demo(output: Path, video: Path | None = None, iterations: int = 900, dev
               description="avatar, orbit")
     r.avatar.export(tmp / "export", "obj", texture_size=256)
     photo = Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))
-    pixels = read_image(photo)
+    pixels = read_picture(photo)
     fit_photo = fit_image(head, pixels)
     write_png(tmp / "fit_grace_hopper.png", overlay(pixels, fit_photo, head.faces.numpy()))
-    write_turntable(head, tmp / "turntable.mp4", 60, 256, 100_000)
+    write_turntable(head, tmp / "turntable.mp4", *turntable)
     metrics["fit_grace_hopper_median_px"] = round(fit_photo.median_px, 3)
     if video is None:
         from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error, write_geometry_report

@@ -31,18 +31,6 @@ RUN_VERSION = 2
 ASSETS = "assets"
 
 
-def _load_tracking(path: Path) -> dict[str, torch.Tensor]:
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    if not path.is_file():
-        raise HeadforgeError(f"{path} is missing")
-    try:
-        return load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as exc:
-        raise HeadforgeError(f"{path} is not a readable safetensors file ({exc})") from None
-
-
 def _flame_digest(flame_dir: str | None = None) -> str:
     from headforge.head.flame import find_flame_dir
 
@@ -60,11 +48,12 @@ class RunAssets:
 
     @classmethod
     def from_dataset(cls, root: Path) -> "RunAssets":
-        from headforge.data.dataset import read_meta
+        from headforge.data.dataset import load_tracking, read_meta
 
-        meta = {k: v for k, v in read_meta(root).items() if k != "video"}
-        tracking = _load_tracking(Path(root) / "tracking.safetensors")
-        assets = cls(meta, {k: v for k, v in tracking.items() if k != "projected"})
+        meta = read_meta(root)
+        tracking = load_tracking(root, meta)
+        assets = cls({k: v for k, v in meta.items() if k != "video"},
+                     {k: v for k, v in tracking.items() if k != "projected"})
         if assets.meta.get("model") == "flame":
             assets.meta["flame_sha256"] = _flame_digest()
         return assets
@@ -81,10 +70,16 @@ class RunAssets:
 
     @classmethod
     def load(cls, run: Path) -> "RunAssets":
+        from headforge.data.dataset import load_tracking
+
         folder = run / ASSETS
         if not (folder / "dataset.json").is_file():
             raise HeadforgeError(f"{run} is incomplete: {ASSETS}/dataset.json is missing")
-        return cls(json.loads((folder / "dataset.json").read_text()), _load_tracking(folder / "tracking.safetensors"))
+        try:
+            meta = json.loads((folder / "dataset.json").read_text())
+        except json.JSONDecodeError as exc:
+            raise HeadforgeError(f"{folder / 'dataset.json'} is not valid JSON: {exc}") from None
+        return cls(meta, load_tracking(folder, meta))
 
     def fingerprint(self) -> str:
         digest = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())

@@ -54,13 +54,13 @@ def fit_image(image: Path = typer.Argument(..., help="a photo with one face, or 
               steps: int = typer.Option(300, help="Adam steps"),
               frame: int = typer.Option(0, help="frame index when IMAGE is a video")) -> None:
     """Fit the head model (rigid + shape + expression) to MediaPipe landmarks of a photo."""
-    from headforge.data.video import read_image
+    from headforge.data.video import read_picture
     from headforge.head.fit import ImageFitConfig, fit_image, overlay
     from headforge.render.io import write_png
 
     if steps < 1:
         raise HeadforgeError(f"--steps must be >= 1, got {steps}")
-    pixels = read_image(image, frame)
+    pixels = read_picture(image, frame)
     head = load_model(model, flame_dir)
     progress(f"fitting {head.name} to {image.name} ({steps} steps)")
     fit = fit_image(head, pixels, ImageFitConfig(steps=steps))

@@ -25,12 +25,14 @@ def track(video: Path = typer.Argument(..., help="a video with one face (mp4, mo
                                                           "(default: MediaPipe selfie segmentation)"),
           photometric: bool = typer.Option(False, help="refine the landmark fit against the crops with the "
                                                         "renderer (shading + silhouette; slower, better shape)"),
+          fps: Optional[float] = typer.Option(None, help="the source's frame rate (default: the video's own; "
+                                                           "30 for a folder of frames)"),
           overlay: bool = typer.Option(True, help="write overlay.mp4 (landmarks + model wireframe)")) -> None:
     """Preprocess a video or a folder of frames (crops, masks, landmarks) and track the head model in it."""
     from headforge.track.pipeline import TrackOptions, track_video
 
     options = TrackOptions(model, flame_dir, resolution, every, max_frames, val_fraction, preset, overlay, focal,
-                           crop, None if masks is None else str(masks), photometric)
+                           crop, None if masks is None else str(masks), photometric, fps)
     with Bars() as bars:
         metrics = track_video(video, output, options, log=progress, progress_factory=bars.factory)
     console.print(f"dataset written to {output}/ (dataset.json, frames/, masks/, overlay.mp4, metrics.json)")

@@ -130,7 +130,7 @@ def read_frame(path: str | Path, index: int = 0) -> np.ndarray:
     raise HeadforgeError(f"{path} has fewer than {index + 1} frames")
 
 
-def read_image(path: str | Path, frame: int = 0) -> np.ndarray:
+def read_picture(path: str | Path, frame: int = 0) -> np.ndarray:
     """An RGB uint8 image from a picture file, or frame ``frame`` of a video file."""
     from PIL import Image, UnidentifiedImageError
 
