@@ -45,6 +45,7 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
              forward: str = typer.Option("+z", help="external scans: the axis the face looks along"),
              only: Optional[str] = typer.Option(None, help="comma-separated scan names to register"),
              ablation: str = typer.Option("both", help="both, stage1, stage2 or stage1_weights2 (Fig. 10)"),
+             steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
              ray: bool = typer.Option(False, "--ray", help="run the scans as tasks on a local Ray runtime"),
              ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address (implies --ray)"),
              model: str = typer.Option("open-head", "--model", "-m", help="open-head or flame"),
@@ -63,7 +64,7 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
             if not items:
                 raise HeadforgeError(f"none of {sorted(wanted)} is in {scans}")
         opts = dict(preset=preset, map_size=map_size, units=units, up=up, forward=forward, head_model=model,
-                    flame_dir=flame_dir, ablation=ablation)
+                    flame_dir=flame_dir, ablation=ablation, steps_scale=steps_scale)
         from headforge.craft.pipeline import config_for, ItemOptions
 
         config_for(ItemOptions(**opts))  # bad preset/ablation: fail before any work

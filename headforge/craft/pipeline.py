@@ -34,6 +34,7 @@ class ItemOptions:
     head_model: str = "open-head"
     flame_dir: str | None = None
     ablation: str = "both"  # both | stage1 | stage2 | stage1_weights2
+    steps_scale: float = 1.0  # multiplies every step count (smoke runs, tests)
 
 
 @lru_cache(maxsize=2)
@@ -61,6 +62,14 @@ def config_for(options: ItemOptions) -> reg_mod.RegisterConfig:
         cfg.stage2 = replace(cfg.stage2, enabled=False)
     elif options.ablation != "both":
         raise HeadforgeError(f"unknown ablation {options.ablation!r}")
+    if not 0 < options.steps_scale <= 10:
+        raise HeadforgeError(f"--steps-scale must be within (0, 10], got {options.steps_scale}")
+    if options.steps_scale != 1.0:
+        k = options.steps_scale
+        cfg.landmark_steps = max(20, int(cfg.landmark_steps * k))
+        cfg.stage1 = replace(cfg.stage1, steps=max(1, int(cfg.stage1.steps * k)))
+        cfg.stage2 = replace(cfg.stage2, steps=max(1, int(cfg.stage2.steps * k)))
+        cfg.scan_points = max(5_000, int(cfg.scan_points * min(1.0, k)))
     return cfg
 
 

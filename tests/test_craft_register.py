@@ -1,0 +1,173 @@
+"""HeadCraft registration: landmark alignment, the two stages, bad scans, the batch command."""
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from headforge.errors import HeadforgeError
+
+SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "scans"
+
+
+@pytest.fixture(scope="module")
+def template():
+    from headforge.craft import pipeline
+
+    return pipeline.template_for("open-head", 1)
+
+
+@pytest.fixture(scope="module")
+def bald_set(tmp_path_factory):
+    """One clean bald in-span scan (instant to make)."""
+    from headforge.craft.scans import ScanSetConfig, generate_scans
+
+    folder = tmp_path_factory.mktemp("bald")
+    generate_scans(folder, ScanSetConfig(n=1, source="open-head", expression_every=9, sheet_px=64), log=lambda m: None)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def scan_set(tmp_path_factory):
+    """Two in-span (open-head source) scans: id000 bald clean, id001 short hair remeshed (5 mm)."""
+    from headforge.craft.scans import ScanSetConfig, generate_scans
+
+    folder = tmp_path_factory.mktemp("scans")
+    generate_scans(folder, ScanSetConfig(n=2, source="open-head", expression_every=9, hair_voxel_m=0.005,
+                                         remesh_voxel_m=0.004, sheet_px=64), log=lambda m: None)
+    return folder
+
+
+def _fast(config):
+    config.landmark_steps = 120
+    config.scan_points = 15_000
+    config.stage1 = replace(config.stage1, steps=120)
+    config.stage2 = replace(config.stage2, steps=60)
+    return config
+
+
+def test_umeyama_recovers_similarity():
+    from scipy.spatial.transform import Rotation
+
+    from headforge.craft.register import umeyama
+
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(40, 3))
+    R = Rotation.from_rotvec([0.2, -0.4, 0.1]).as_matrix()
+    s, R2, t = umeyama(src, 1.3 * src @ R.T + [1, 2, 3])
+    assert abs(s - 1.3) < 1e-9 and np.allclose(R2, R) and np.allclose(t, [1, 2, 3])
+
+
+@pytest.mark.slow  # ~1-2 min on 2 cores: a remeshed scan and two registrations
+def test_two_stage_registration_fits_hair(template, scan_set):
+    from headforge.craft import register as R
+    from headforge.craft.pipeline import ItemOptions, load_any
+
+    tpl, _ = template
+    scan, gt = load_any(scan_set / "id001", ItemOptions())
+    cfg = _fast(R.RegisterConfig.quick())
+    none = replace(cfg, stage1=replace(cfg.stage1, enabled=False), stage2=replace(cfg.stage2, enabled=False))
+    base = R.register(tpl, scan, none)
+    reg = R.register(tpl, scan, cfg)
+    m0 = R.evaluate(tpl, base, base.vertices, scan, gt["labels"], gt["landmarks"])
+    m = R.evaluate(tpl, reg, reg.vertices, scan, gt["labels"], gt["landmarks"])
+    hair0, hair = m0["scan_to_reg"]["hair"]["median_mm"], m["scan_to_reg"]["hair"]["median_mm"]
+    assert hair0 > 3.0, "the landmark fit alone cannot reach the hair"
+    assert hair < 1.5 and hair < hair0 / 3, (hair0, hair)
+    assert m["scan_to_reg"]["face"]["median_mm"] < 0.8
+    assert m["max_edge_ratio"] < 4.0
+    assert m["landmark_consistency_mm"] < 2.0
+    # frozen parts did not move; displacements stay within the clip range
+    frozen = np.union1d(tpl.regions["eyeballs"], tpl.regions["lower_neck"])
+    assert reg.displacement[frozen].abs().max() < 1e-9
+    assert reg.displacement.abs().max() <= 20 / 120 + 1e-9
+
+
+def test_bad_scans_give_one_line_errors(template, bald_set):
+    from scipy.spatial.transform import Rotation
+
+    from headforge.craft import register as R
+    from headforge.craft.pipeline import ItemOptions, load_any
+    from headforge.craft.scans import Scan
+
+    tpl, _ = template
+    cfg = _fast(R.RegisterConfig.quick())
+    scan, _ = load_any(bald_set / "id000", ItemOptions())
+    turned = Rotation.from_euler("y", 150, degrees=True).as_matrix()
+    cases = [
+        (Scan(scan.vertices @ turned.T, scan.faces, scan.landmarks @ turned.T, "turned", {"units": "m"}), "turned"),
+        (Scan(scan.vertices * 10, scan.faces, scan.landmarks * 10, "big", {"units": "m"}), "wrong units"),
+        (Scan(scan.vertices, scan.faces, None, "bare", {"units": "m"}), "no landmarks"),
+        (Scan(scan.vertices, scan.faces, np.full((478, 3), np.nan), "nolmk", {"units": "m"}), "usable landmarks"),
+        (Scan(scan.vertices * [1, 0, 1], scan.faces, scan.landmarks, "flat", {"units": "m"}), "degenerate"),
+        (Scan(np.zeros((0, 3)), np.zeros((0, 3), int), None, "empty", {}), "empty"),
+    ]
+    for bad, message in cases:
+        with pytest.raises(HeadforgeError) as info:
+            R.register(tpl, bad, cfg)
+        text = str(info.value)
+        assert "\n" not in text and message in text, text
+
+
+def test_register_command_fails_cleanly(tmp_path):
+    from typer.testing import CliRunner
+
+    from headforge.commands import craft
+
+    runner = CliRunner()
+    only_bad = tmp_path / "bad"
+    only_bad.mkdir()
+    (only_bad / "broken.obj").write_text("v 0 0 0\n")
+    (only_bad / "notes.txt").write_text("not a scan")
+    bad = runner.invoke(craft.app, ["register", str(only_bad), "-o", str(tmp_path / "m")])
+    assert bad.exit_code == 1 and "no scan was registered" in bad.output
+    assert "broken" in bad.output and "empty" in bad.output
+    assert not (tmp_path / "m" / "broken").exists() and (tmp_path / "m" / "_failed" / "broken.json").exists()
+    assert runner.invoke(craft.app, ["register", str(only_bad), "-o", str(tmp_path / "m"), "--preset", "slow"]).exit_code == 1
+    assert runner.invoke(craft.app, ["register", str(only_bad), "-o", str(tmp_path / "m"), "--map-size", "100"]).exit_code == 1
+    empty = tmp_path / "none"
+    empty.mkdir()
+    r = runner.invoke(craft.app, ["register", str(empty), "-o", str(tmp_path / "m3")])
+    assert r.exit_code == 1 and "holds no scans" in r.output
+
+
+@pytest.mark.slow  # ~1 min: one quick registration through the command
+def test_register_command_isolates_and_resumes(tmp_path, bald_set):
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from headforge.commands import craft
+
+    scans = tmp_path / "scans"
+    shutil.copytree(bald_set / "id000", scans / "id000")
+    (scans / "broken.obj").write_text("v 0 0 0\n")
+    out = tmp_path / "maps"
+    runner = CliRunner()
+    result = runner.invoke(craft.app, ["register", str(scans), "-o", str(out), "--preset", "quick", "--map-size", "128",
+                                       "--steps-scale", "0.25"])
+    assert result.exit_code == 0, result.output
+    assert "broken" in result.output and "failed" in result.output
+    assert (out / "id000" / "map.png").exists() and (out / "id000" / "preview.png").exists()
+    assert not (out / "broken").exists() and (out / "_failed" / "broken.json").exists()
+    import json
+
+    metrics = json.loads((out / "id000" / "metrics.json").read_text())
+    assert metrics["roundtrip"]["median_mm"] < 0.2
+    assert metrics["scan_to_reg"]["face"]["median_mm"] < 1.0
+    again = runner.invoke(craft.app, ["register", str(scans), "-o", str(out), "--map-size", "128", "--steps-scale", "0.25"])
+    assert "skipped" in again.output
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SCANS / "james.obj").exists(), reason="real scans not present")
+def test_real_scan_james_registers(template):
+    from headforge.craft import register as R
+    from headforge.craft.pipeline import ItemOptions, load_any
+
+    tpl, _ = template
+    scan, _ = load_any(SCANS / "james.obj", ItemOptions())
+    reg = R.register(tpl, scan, R.RegisterConfig.quick())
+    m = R.evaluate(tpl, reg, reg.vertices, scan)
+    assert m["scan_to_reg"]["all"]["median_mm"] < 2.0
