@@ -39,6 +39,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an NHAConfig field for an A/B run (repeatable), e.g. --set tex_grid=256")
     parser.add_argument("--reuse", action="store_true", help="report a finished --run folder instead of refusing it")
+    parser.add_argument("--threads", type=int, default=2, help="CPU threads (2: the CI machines' figure; 1 on a "
+                                                                  "machine whose cores are busy, where spinning threads stall)")
     args = parser.parse_args()
     from headforge.avatars.engine import fit
     from headforge.avatars.nha.config import NHAConfig
@@ -51,7 +53,7 @@ def main() -> None:
 
     device = resolve_device(args.device)
     if device.type == "cpu":
-        torch.set_num_threads(2)
+        torch.set_num_threads(args.threads)
 
     dataset = args.dataset
     if dataset is None:
@@ -87,7 +89,8 @@ def main() -> None:
     print(json.dumps({"train_minutes": metrics["train_minutes"], **figures, "matte_sigma_px": metrics["matte_sigma_px"],
                       "iterations": metrics["iterations"], "preset": args.preset, "resolution": config.resolution,
                       "device": str(device), "overrides": args.set, f"render_fps_{config.resolution}": round(1000 / ms, 2),
-                      "lpips": "n/a (no pretrained weights)", "reused_run": reused}))
+                      "lpips": "n/a (no pretrained weights)", "reused_run": reused,
+                      "threads": args.threads if device.type == "cpu" else None}))
 
 
 if __name__ == "__main__":
