@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from headforge.commands import demo, evaluate, export, fit, model, render, synth, track
+from headforge.commands import craft, demo, evaluate, export, fit, model, render, synth, track
 from headforge.commands.common import console
 from headforge.errors import HeadforgeError
 
@@ -16,6 +16,7 @@ app = typer.Typer(help="headforge: animatable 3D head avatars from phone videos 
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(model.app, name="model")
 app.add_typer(render.app, name="render")
+app.add_typer(craft.app, name="craft")
 app.command("track")(track.track)
 app.command("fit")(fit.fit)
 app.command("export")(export.export)
