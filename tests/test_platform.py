@@ -341,3 +341,32 @@ def test_a_second_method_plugs_into_the_engine_and_the_cli_without_touching_nha(
                               "--set", "points=100"])
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout.strip().splitlines()[-1])["iterations"] == 2
+
+
+def test_a_flame_run_references_the_users_files_by_hash_never_a_copy(tmp_path, monkeypatch):
+    """A FLAME run keeps the sha256 of the user's generic_model.pkl: without the files, or with
+    other ones, loading it says what is missing in one line."""
+    import hashlib
+
+    from headforge.avatars.run import RunAssets
+
+    mine = tmp_path / "flame"
+    mine.mkdir()
+    (mine / "generic_model.pkl").write_bytes(b"my FLAME")
+    assets = RunAssets({"model": "flame", "flame_sha256": hashlib.sha256(b"my FLAME").hexdigest()}, {})
+    monkeypatch.delenv("HEADFORGE_FLAME_DIR", raising=False)
+    with pytest.raises(HeadforgeError, match="needs your FLAME files .*sha256 .*no FLAME folder"):
+        assets.head_data()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "generic_model.pkl").write_bytes(b"another FLAME")
+    monkeypatch.setenv("HEADFORGE_FLAME_DIR", str(other))
+    with pytest.raises(HeadforgeError, match="trained on another FLAME generic_model.pkl"):
+        assets.head_data()
+    monkeypatch.setenv("HEADFORGE_FLAME_DIR", str(mine))
+    loaded = []
+    monkeypatch.setattr("headforge.head.load_data", lambda name, flame_dir=None: loaded.append(name) or "data")
+    assert assets.head_data() == "data" and loaded == ["flame"]
+    run = tmp_path / "run"
+    assets.save(run)
+    assert not list(run.rglob("*.pkl")) and b"my FLAME" not in (run / "assets" / "dataset.json").read_bytes()
