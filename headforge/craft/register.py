@@ -458,6 +458,9 @@ def evaluate(template: Template, reg: Registration, vertices: torch.Tensor, scan
     pick = rng.choice(len(canon), min(samples, len(canon)), replace=False)
     d_scan = surface_distance(canon[pick], v, faces)
     out = {"scan_to_reg": {"all": _stats(d_scan)}}
+    # "head": the scan above the template's lower neck (real scans carry shoulders the model lacks)
+    cut = float(reg.base[template.regions["lower_neck"], 1].max()) + 0.01
+    out["scan_to_reg"]["head"] = _stats(d_scan[canon[pick, 1] > cut])
     if labels is not None:
         lab = labels[pick]
         out["scan_to_reg"]["face"] = _stats(d_scan[lab == LABELS["face"]])

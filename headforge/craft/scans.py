@@ -455,8 +455,8 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray, si
     cam = look_at_head(size, size, distance=distance, yaw_deg=yaw_deg, target=target)
     hits = raycast(vertices, faces, cam)
     albedo = (colours[faces[np.maximum(hits.face_id, 0)]] * hits.bary[..., None]).sum(-2)
-    light = cam.R.T @ np.array([0.3, -0.4, -1.0])
-    shaded = shade_lambert(hits, faces, vertices, albedo, cam, light_dir=tuple(cam.R @ light))
+    light = cam.centre - np.asarray(target) + np.array([0.0, 0.4 * distance, 0.0])  # from the camera, a bit above
+    shaded = shade_lambert(hits, faces, vertices, albedo, cam, light_dir=tuple(light))
     return np.where(hits.mask[..., None], shaded, 1.0)
 
 
@@ -682,6 +682,9 @@ def detect_scan_landmarks(scan: Scan, size: int = 512, yaws=(-20.0, 0.0, 20.0)) 
     from headforge.render.raycast import cast, raycast, shade_lambert
 
     v, f = scan.vertices, scan.faces
+    # unknown units: render at a provisional scale (35 cm tall); the landmark fit finds the true one
+    k = 1.0 if scan.meta.get("units") not in (None, "unknown") else 0.35 / max(float(np.ptp(v[:, 1])), 1e-9)
+    v = v * k
     top = v[:, 1].max()
     height = float(np.ptp(v[:, 1]))
     # the head is the top ~25 cm; look at its middle from the front
@@ -692,7 +695,7 @@ def detect_scan_landmarks(scan: Scan, size: int = 512, yaws=(-20.0, 0.0, 20.0)) 
         cam = look_at_head(size, size, focal=2.4 * size, distance=0.7, yaw_deg=yaw, target=target)
         hits = raycast(v, f, cam)
         albedo = np.broadcast_to(np.array([0.85, 0.7, 0.62]), hits.bary.shape)
-        img = shade_lambert(hits, f, v, albedo, cam, light_dir=(0.2, -0.3, -1.0))
+        img = shade_lambert(hits, f, v, albedo, cam, light_dir=tuple(cam.centre - target + np.array([0.0, 0.3, 0.0])))
         img = np.where(hits.mask[..., None], img, 0.6)
         pts = detect_mediapipe((np.clip(img, 0, 1) * 255).astype(np.uint8))
         if pts is None:
@@ -705,4 +708,5 @@ def detect_scan_landmarks(scan: Scan, size: int = 512, yaws=(-20.0, 0.0, 20.0)) 
     if not lifted:
         raise HeadforgeError(f"no face detected on renders of scan {scan.name!r}: check its up/forward axes "
                              "or give a landmark file")
-    return np.nanmedian(np.stack(lifted), axis=0)
+    with np.errstate(all="ignore"):
+        return np.nanmedian(np.stack(lifted), axis=0) / k
