@@ -56,7 +56,7 @@ def _print(rows: list[dict], title: str) -> None:
     cols = list(rows[0])
     print("  ".join(f"{c:>13}" for c in cols))
     for r in rows:
-        print("  ".join(f"{r[c]:>13.3f}" if isinstance(r[c], float) else f"{str(r[c]):>13}" for c in cols))
+        print("  ".join(f"{r[c]:>13.3f}" if isinstance(r[c], float) else f"{r[c]!s:>13}" for c in cols))
 
 
 def main() -> None:

@@ -19,7 +19,12 @@ def data():
 
 
 def test_clean_set_is_fast_and_labelled(tmp_path):
-    from headforge.craft.scans import LABELS, ScanSetConfig, generate_scans, load_generated
+    from headforge.craft.scans import (
+        LABELS,
+        ScanSetConfig,
+        generate_scans,
+        load_generated,
+    )
 
     keys = generate_scans(tmp_path, ScanSetConfig(n=2, source="open-head", harder=False, expression_every=2,
                                                   hair_voxel_m=0.009, sheet_px=48), log=lambda m: None)
@@ -34,7 +39,12 @@ def test_clean_set_is_fast_and_labelled(tmp_path):
 
 @pytest.mark.slow  # ~2 min on 2 busy cores (the remeshed variant)
 def test_generated_set_ground_truth_and_resume(tmp_path):
-    from headforge.craft.scans import LABELS, ScanSetConfig, generate_scans, load_generated
+    from headforge.craft.scans import (
+        LABELS,
+        ScanSetConfig,
+        generate_scans,
+        load_generated,
+    )
     from headforge.metrics.geometry import points_to_mesh
 
     cfg = ScanSetConfig(n=2, source="open-head", expression_every=2, hair_voxel_m=0.005, remesh_voxel_m=0.004,
@@ -59,6 +69,8 @@ def test_generated_set_ground_truth_and_resume(tmp_path):
     # the scan is the canonical head moved by (R, t)
     R, t = np.array(spec0["rotation"]), np.array(spec0["translation"])
     assert not np.allclose(R, np.eye(3)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+    eyes = ((gt0["landmarks"] - t) @ R)[[33, 263]].mean(0)  # canonical origin: between the eyes
+    assert abs(eyes[0]) < 0.005 and abs(eyes[1]) < 0.015
     before = (tmp_path / "id001" / "scan.ply").stat().st_mtime_ns
     assert generate_scans(tmp_path, cfg, log=lambda m: None) == keys
     assert (tmp_path / "id001" / "scan.ply").stat().st_mtime_ns == before  # resumed, not redone

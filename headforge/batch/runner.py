@@ -21,9 +21,10 @@ import json
 import shutil
 import time
 import traceback
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from headforge.errors import HeadforgeError
 
@@ -179,5 +180,5 @@ def summary_table(result: BatchResult, columns: Sequence[str] = ()) -> str:
             vals.append(f"{v:.3g}" if isinstance(v, (int, float)) else str(v))
         rows.append([r.key, r.status, f"{r.seconds:.1f}", *vals, r.error])
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
-    line = lambda cells: "  ".join(str(c).ljust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
+    line = lambda cells: "  ".join(str(c).ljust(w) for c, w in zip(cells, widths)).rstrip()
     return "\n".join([line(head), line(["-" * w for w in widths]), *map(line, rows)])

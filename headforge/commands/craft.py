@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -43,13 +42,13 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
              units: str = typer.Option("auto", help="external scans: auto, m, cm, mm or metres per unit"),
              up: str = typer.Option("+y", help="external scans: the file's up axis (+x, -x, +y, ...)"),
              forward: str = typer.Option("+z", help="external scans: the axis the face looks along"),
-             only: Optional[str] = typer.Option(None, help="comma-separated scan names to register"),
+             only: str | None = typer.Option(None, help="comma-separated scan names to register"),
              ablation: str = typer.Option("both", help="both, stage1, stage2 or stage1_weights2 (Fig. 10)"),
              steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
              ray: bool = typer.Option(False, "--ray", help="run the scans as tasks on a local Ray runtime"),
-             ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address (implies --ray)"),
+             ray_address: str | None = typer.Option(None, "--ray-address", help="Ray cluster address (implies --ray)"),
              model: str = typer.Option("open-head", "--model", "-m", help="open-head or flame"),
-             flame_dir: Optional[str] = typer.Option(None, "--flame-dir", help="folder with FLAME's generic_model.pkl")) -> None:
+             flame_dir: str | None = typer.Option(None, "--flame-dir", help="folder with FLAME's generic_model.pkl")) -> None:
     """Register a folder of scans (resumable; one bad scan never stops the rest)."""
     from headforge.batch import run_batch, summary_table
     from headforge.craft.pipeline import list_scans, register_item
@@ -65,7 +64,7 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
                 raise HeadforgeError(f"none of {sorted(wanted)} is in {scans}")
         opts = dict(preset=preset, map_size=map_size, units=units, up=up, forward=forward, head_model=model,
                     flame_dir=flame_dir, ablation=ablation, steps_scale=steps_scale)
-        from headforge.craft.pipeline import config_for, ItemOptions
+        from headforge.craft.pipeline import ItemOptions, config_for
 
         config_for(ItemOptions(**opts))  # bad preset/ablation: fail before any work
         result = run_batch([(k, {"path": p, **opts}) for k, p in items], register_item, output,

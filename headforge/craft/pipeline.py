@@ -18,7 +18,15 @@ import torch
 
 from headforge.craft import register as reg_mod
 from headforge.craft import uvmap
-from headforge.craft.scans import Scan, detect_scan_landmarks, load_generated, read_scan, render_mesh, write_ply, write_png
+from headforge.craft.scans import (
+    Scan,
+    detect_scan_landmarks,
+    load_generated,
+    read_scan,
+    render_mesh,
+    write_ply,
+    write_png,
+)
 from headforge.errors import HeadforgeError
 
 SCAN_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
@@ -120,7 +128,7 @@ def preview(template, registration, scan: Scan, distances: np.ndarray, size: int
     faces = template.faces.numpy()
     v = registration.vertices.numpy()
     target = v[template.regions["face"]].mean(0) + np.array([0.0, -0.02, -0.06])
-    grey = lambda n: np.tile([0.75, 0.75, 0.78], (n, 1))  # noqa: E731
+    grey = lambda n: np.tile([0.75, 0.75, 0.78], (n, 1))
     row = []
     for yaw in (25.0, 150.0):
         row.append(render_mesh(registration.scan_canonical, scan.faces, grey(len(scan.vertices)), size, yaw, target))
@@ -162,7 +170,7 @@ def register_item(key: str, payload: dict, workdir: Path) -> dict:
                             "quantum_um": 1e6 * uvmap.QUANTUM_M}
     metrics["seconds"] = registration.seconds
     metrics["vertices"] = template.n_vertices
-    metrics["scan"] = {"name": scan.name, "vertices": int(len(scan.vertices)), **{k: str(v) for k, v in scan.meta.items()}}
+    metrics["scan"] = {"name": scan.name, "vertices": len(scan.vertices), **{k: str(v) for k, v in scan.meta.items()}}
     if gt is not None:
         metrics["hair_style"], metrics["variant"] = gt["spec"]["hair_style"], gt["spec"]["variant"]
         metrics["expression"] = bool(gt["spec"]["expression"])

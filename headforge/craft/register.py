@@ -33,7 +33,12 @@ import torch
 from headforge.craft.scans import LABELS, Scan
 from headforge.errors import HeadforgeError
 from headforge.head.model import HeadModel, HeadModelData
-from headforge.head.topology import ConsistentSubdivision, directed_edges, laplacian_smooth, vertex_normals
+from headforge.head.topology import (
+    ConsistentSubdivision,
+    directed_edges,
+    laplacian_smooth,
+    vertex_normals,
+)
 
 PAPER_UNITS_PER_M = 120.0  # NPHM space (FLAME metres x 4) times the 30x of App. A.1
 FIT_LANDMARKS = np.arange(478)  # every MediaPipe point with a value (NaN ones are skipped)
@@ -84,18 +89,18 @@ class RegisterConfig:
     threads: int = 1  # torch and KD-tree threads; on shared 2-core hosts 1 is several times faster than 2
 
     @classmethod
-    def quick(cls) -> "RegisterConfig":
+    def quick(cls) -> RegisterConfig:
         """CPU preset: one subdivision, fewer steps, sparser correspondences; stage 2's rate
         raised 5x so its 250 steps can move as far as the paper's 1,000 steps could halfway."""
         return cls(levels=1, landmark_steps=200, scan_points=40_000, nn_every=4,
                    stage1=replace(_stage1(), steps=400), stage2=replace(_stage2(), steps=250, lr=1.5e-3))
 
     @classmethod
-    def paper(cls) -> "RegisterConfig":
+    def paper(cls) -> RegisterConfig:
         return cls()
 
     @classmethod
-    def preset(cls, name: str) -> "RegisterConfig":
+    def preset(cls, name: str) -> RegisterConfig:
         if name not in ("quick", "paper"):
             raise HeadforgeError(f"unknown preset {name!r}; choose quick or paper")
         return getattr(cls, name)()
@@ -432,7 +437,7 @@ def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 def _stats(d: np.ndarray) -> dict:
     if len(d) == 0:
         return {"median_mm": float("nan"), "p95_mm": float("nan"), "n": 0}
-    return {"median_mm": float(1000 * np.median(d)), "p95_mm": float(1000 * np.percentile(d, 95)), "n": int(len(d))}
+    return {"median_mm": float(1000 * np.median(d)), "p95_mm": float(1000 * np.percentile(d, 95)), "n": len(d)}
 
 
 def max_edge_ratio(template: Template, registered: torch.Tensor, base: torch.Tensor) -> float:

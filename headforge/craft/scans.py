@@ -74,7 +74,7 @@ class ScanSetConfig:
     source: str = "anny"  # identities from anny ("anny") or the head model's own PCA ("open-head": fast, in span)
 
     @classmethod
-    def quick(cls) -> "ScanSetConfig":
+    def quick(cls) -> ScanSetConfig:
         return cls(n=2, hair_voxel_m=0.004, remesh_voxel_m=0.003, sheet_px=160)
 
     def validate(self) -> None:
@@ -417,7 +417,7 @@ class ScanGenerator:
                 verts, faces, used = cut_holes(verts, faces, head, landmarks)
                 labels = labels[used]
         R, t = np.asarray(spec.rotation), np.asarray(spec.translation)
-        move = lambda x: x @ R.T + t  # noqa: E731
+        move = lambda x: x @ R.T + t
         return {"vertices": move(verts), "faces": faces, "labels": labels, "hair": labels == LABELS["hair"],
                 "landmarks": move(landmarks), "head": move(head)}
 
@@ -573,7 +573,7 @@ IBUG68_TO_MEDIAPIPE = np.array([
     291, 405, 314, 17, 84, 181, 78, 82, 13, 312, 308, 317, 14, 87])
 # menpo LJSON label groups -> iBUG-68 index ranges. "l"/"r" is the image's side: menpo's "leye"
 # is the subject's right eye (iBUG 36-41), checked on james.ljson (it lies at -x, outer corner first).
-LJSON_GROUPS = {"chin": range(0, 17), "leyebrow": range(17, 22), "reyebrow": range(22, 27), "nose": range(27, 36),
+LJSON_GROUPS = {"chin": range(17), "leyebrow": range(17, 22), "reyebrow": range(22, 27), "nose": range(27, 36),
                 "leye": range(36, 42), "reye": range(42, 48), "mouth": range(48, 68)}
 
 
