@@ -115,7 +115,12 @@ def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int 
         if ray_address:
             ray.init(address=ray_address, **kwargs)
         else:
-            ray.init(num_cpus=num_cpus, **kwargs)
+            # a local runtime's workers import what this process can (fn may live in a script/test)
+            import os
+            import sys
+
+            path = os.pathsep.join(p for p in sys.path if p)
+            ray.init(num_cpus=num_cpus, runtime_env={"env_vars": {"PYTHONPATH": path}}, **kwargs)
         started = True
     try:
         remote = ray.remote(max_retries=0)(run_item)
@@ -125,7 +130,8 @@ def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int 
             try:
                 results.append(ray.get(ref))
             except Exception as exc:  # noqa: BLE001 -- a dead worker fails its item only
-                message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not set(ln.strip()) <= set("^~")]
+                message = lines[-1] if lines else type(exc).__name__  # Ray puts the cause last
                 results.append(ItemResult(key, "failed", error=f"ray: {message}"))
                 shutil.rmtree(output / f".{key}.partial", ignore_errors=True)
             log(f"{key}: {results[-1].status}")

@@ -40,7 +40,7 @@ class UVLayout:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: Path) -> "UVLayout":
+    def load(cls, path: Path) -> UVLayout:
         import ast
 
         z = np.load(path)
