@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -144,7 +144,6 @@ class TrainingContext:
     log: object
     start: float
     iteration: int = 0
-    extras: dict = field(default_factory=dict)
 
     def checkpoint(self) -> None:
         self.state.update(iteration=self.iteration, seconds=time.perf_counter() - self.start)
@@ -189,10 +188,10 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
     (run / "val").mkdir(exist_ok=True)
     avatar.to(device)
     state = {"iteration": 0, "seconds": 0.0}
+    if resume:  # the weights first: a method's parameters may have changed size since build
+        load_weights(avatar, run / "checkpoint.safetensors")
     optimisers = method.optimisers(avatar, config)
     if resume:
-        load_weights(avatar, run / "checkpoint.safetensors")
-        optimisers = method.optimisers(avatar, config)  # the parameters may have changed size
         for k, sd in torch.load(run / "optimisers.pt", map_location="cpu", weights_only=False).items():
             optimisers[k].load_state_dict(sd)
         state = json.loads((run / "state.json").read_text())
