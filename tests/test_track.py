@@ -61,12 +61,12 @@ def synthetic(open_head_data, open_head):
 
 def _face_errors_mm(model, result, verts_cam, face):
     """Median face-region vertex error (mm): in camera space, and after a per-frame rigid alignment."""
-    from headforge.track.tracker import FLIP, FRAME_PARAMS
+    from headforge.head.pose import FRAME_KEYS, head_to_camera
 
     T = len(verts_cam)
     with torch.no_grad():
-        out = model(shape=result.shape.expand(T, -1), **{k: result.frames[k] for k in FRAME_PARAMS[:-1]})
-    rec = (out.vertices @ FLIP.T + result.frames["translation"][:, None]).numpy()
+        out = model(shape=result.shape.expand(T, -1), **{k: result.frames[k] for k in FRAME_KEYS[:-1]})
+    rec = head_to_camera(out.vertices, result.frames["translation"]).numpy()
     camera = 1000 * np.median(np.linalg.norm(rec[:, face] - verts_cam[:, face], axis=-1))
     aligned = []
     for t in range(T):

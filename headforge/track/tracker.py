@@ -27,7 +27,6 @@ from headforge.head.model import HeadModel
 from headforge.head.pose import FRAME_KEYS, head_to_camera
 from headforge.render.camera import project_points
 
-FRAME_PARAMS = FRAME_KEYS  # the per-frame parameter record (headforge.head.pose)
 
 
 @dataclass
@@ -57,7 +56,7 @@ class TrackerConfig:
 @dataclass
 class TrackResult:
     shape: torch.Tensor  # (1, n_shape) full width of the model
-    frames: dict[str, torch.Tensor]  # FRAME_PARAMS -> (T, ...)
+    frames: dict[str, torch.Tensor]  # FRAME_KEYS -> (T, ...)
     K: np.ndarray  # (3, 3) crop-pixel intrinsics
     projected: np.ndarray  # (T, L, 2) model landmarks in crop pixels
     errors: np.ndarray  # (T, L) px distance to the matching detections (NaN on invalid frames)
@@ -85,7 +84,7 @@ class ClipParameters:
         self.log_focal = torch.tensor(float(np.log(focal)), dtype=torch.float32, requires_grad=optimise_focal)
         self.shape = torch.zeros(1, n_shape, requires_grad=True)
         self.expr = torch.full((T, model.n_expr), -4.0 if self.bounded else 0.0, requires_grad=True)
-        self.poses = {k: torch.zeros(T, 3, requires_grad=True) for k in FRAME_PARAMS[1:6]}
+        self.poses = {k: torch.zeros(T, 3, requires_grad=True) for k in FRAME_KEYS[1:6]}
         self.trans = torch.tensor(translation, dtype=torch.float32, requires_grad=True)
 
     @property
@@ -94,7 +93,7 @@ class ClipParameters:
 
     @property
     def everything(self) -> list[torch.Tensor]:
-        return self.rigid + [self.shape, self.expr] + [self.poses[k] for k in FRAME_PARAMS[2:6]]
+        return self.rigid + [self.shape, self.expr] + [self.poses[k] for k in FRAME_KEYS[2:6]]
 
     def expression(self, idx=slice(None)) -> torch.Tensor:
         return torch.sigmoid(self.expr[idx]) if self.bounded else self.expr[idx]
@@ -107,7 +106,7 @@ class ClipParameters:
         """HeadModel keyword arguments for frames ``idx`` (root pose included, no translation)."""
         expression = self.expression(idx)
         return {"shape": self.full_shape().expand(len(expression), -1), "expression": expression,
-                **{k: self.poses[k][idx] for k in FRAME_PARAMS[1:6]}}
+                **{k: self.poses[k][idx] for k in FRAME_KEYS[1:6]}}
 
     def to_camera(self, points: torch.Tensor, idx=slice(None)) -> torch.Tensor:
         """(B, N, 3) posed canonical points of frames ``idx`` -> camera space (metres)."""
@@ -158,7 +157,7 @@ class LandmarkEnergy:
         e = p.expression()
         prior = (c.shape_prior * p.shape.pow(2).mean()
                  + c.expression_prior * (e.abs().mean() if p.bounded else e.pow(2).mean())
-                 + c.pose_prior * sum(p.poses[k].pow(2).mean() for k in FRAME_PARAMS[2:6]))
+                 + c.pose_prior * sum(p.poses[k].pow(2).mean() for k in FRAME_KEYS[2:6]))
         smooth = sum(_smooth(v) for v in [e] + list(p.poses.values())) + _smooth(p.trans)
         return data + c.eyelid_weight * lid + prior + c.smooth * smooth
 
