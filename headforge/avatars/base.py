@@ -47,7 +47,8 @@ class Geometry:
 
     vertices (B, V, 3); faces (F, 3) long for a mesh, None for a point set; normals (B, V, 3)
     or None; face_vertices / head_vertices (V,) bool: the face and the head without the neck
-    (what the geometry metrics score), or None when the method cannot tell.
+    (what the geometry metrics score), or None when the method cannot tell; radius (B, V)
+    world-space point radii (metres) for a point set (what a splat of it covers), else None.
     """
 
     vertices: torch.Tensor
@@ -55,6 +56,7 @@ class Geometry:
     normals: torch.Tensor | None = None
     face_vertices: torch.Tensor | None = None
     head_vertices: torch.Tensor | None = None
+    radius: torch.Tensor | None = None
 
 
 class Avatar(nn.Module):
