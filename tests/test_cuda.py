@@ -1,6 +1,6 @@
-"""CUDA paths against the CPU: the vectorised rasterizer, NHA's energies and gradients, and a
-training run that checkpoints on the GPU and resumes on the CPU. Skipped without a CUDA GPU
-(CI has none; run them where one is: ``pytest tests/test_cuda.py``).
+"""CUDA paths against the CPU: the vectorised rasterizer and point splatting, NHA's energies and
+gradients, and a training run that checkpoints on the GPU and resumes on the CPU. Skipped
+without a CUDA GPU (CI has none; run them where one is: ``pytest tests/test_cuda.py``).
 
 ``HEADFORGE_TEST_DATASET`` may name a tracked dataset to use instead of making the synthetic
 one (which needs MediaPipe)."""
@@ -54,6 +54,37 @@ def test_rasterizer_on_cuda_equals_the_numba_kernel(open_head):
     np.testing.assert_allclose(gpu.bary.cpu()[both].numpy(), cpu.bary[both].numpy(), atol=1e-9)
     np.testing.assert_allclose(gpu.depth.cpu()[both].numpy(), cpu.depth[both].numpy(), atol=1e-9)
 
+
+def test_splatting_on_cuda_equals_the_numba_kernel():
+    import trimesh
+
+    from headforge.render import kernels, points
+    from headforge.render.camera import Cameras, look_at_head
+
+    pos, _ = trimesh.sample.sample_surface(trimesh.creation.icosphere(4, radius=0.1), 20000, seed=0)
+    pts = torch.tensor(pos)[None].expand(2, -1, -1).clone()
+    pts[1, :100] = float("nan")
+    gen = torch.Generator().manual_seed(0)
+    radius = 0.8 + 1.5 * torch.rand(2, pts.shape[1], generator=gen, dtype=torch.float64)
+    feats = torch.rand(2, pts.shape[1], 3, generator=gen, dtype=torch.float64)
+    cams = Cameras.from_pinhole([look_at_head(256, 192, distance=0.5, yaw_deg=y) for y in (0, 40)], torch.float64)
+    # the kernel alone on identical screen-space inputs: bit for bit (the same float64 arithmetic)
+    xyz, H, W = cams.project_finite(pts), cams.height, cams.width
+    idx, depth = kernels.splat_numba(xyz.numpy(), radius.numpy(), H, W, 8)
+    gpu_idx, gpu_depth = kernels.splat_torch(xyz.cuda(), radius.cuda(), H, W, 8, chunk_pairs=1 << 16)
+    assert gpu_idx.is_cuda and gpu_depth.is_cuda
+    np.testing.assert_array_equal(gpu_idx.cpu().numpy(), idx)
+    np.testing.assert_array_equal(gpu_depth.cpu().numpy(), depth)
+    # the whole splat: CUDA tensors take the torch path; projections may differ in the last bits
+    cpu = points.splat(cams, pts, feats, radius, K=8)
+    gpu = points.splat(cams.to("cuda"), pts.cuda(), feats.cuda(), radius.cuda(), K=8)
+    assert gpu.features.is_cuda and gpu.fragments.idx.is_cuda
+    agree = (gpu.fragments.idx.cpu() == cpu.fragments.idx).all(-1)
+    assert agree.double().mean().item() > 0.9999 and cpu.mask.gt(0.5).double().mean() > 0.1
+    np.testing.assert_allclose(gpu.features.cpu()[agree].numpy(), cpu.features[agree].numpy(), atol=1e-9)
+    np.testing.assert_allclose(gpu.mask.cpu()[agree].numpy(), cpu.mask[agree].numpy(), atol=1e-9)
+    off = (gpu.max_weight.cpu() - cpu.max_weight).abs() > 1e-6
+    assert off.double().mean().item() < 1e-3
 
 def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
     from headforge.avatars.frames import FrameData

@@ -206,6 +206,98 @@ def test_numba_splat_equals_torch_reference():
     np.testing.assert_allclose(ref_depth.numpy(), depth)
 
 
+def _awkward_cloud(B, N, res, gen):
+    """Projected random points (continuous depths) with per-point radii, plus points off-screen,
+    behind the camera, NaN, with zero radius and covering the image border."""
+    pts = (torch.rand(B, N, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.2
+    xyz = _cams(res, B=B).project(pts)
+    radius = 0.3 + 3 * torch.rand(B, N, generator=gen, dtype=torch.float64)
+    m = N // 10
+    xyz[:, :m, :2] += 4 * res * (torch.rand(B, m, 2, generator=gen, dtype=torch.float64) - 0.5)  # many off-screen
+    xyz[:, m:2 * m, 2] *= -1  # behind the camera
+    xyz[:, 2 * m, 0] = float("nan")
+    xyz[:, 2 * m + 1] = float("nan")
+    xyz[:, 2 * m + 2, 2] = float("inf")
+    radius[:, 2 * m + 3] = 0.0
+    radius[:, 2 * m + 4] = float("nan")
+    xyz[:, 2 * m + 5, :2] = torch.tensor([-0.9, res - 0.2], dtype=torch.float64)  # straddles a corner
+    radius[:, 2 * m + 5] = 2.0
+    return xyz, radius
+
+
+@pytest.mark.parametrize("B, N, K, res, chunk_pairs", [(1, 300, 1, 24, 1 << 22), (2, 900, 5, 40, 1 << 22),
+                                                      (3, 600, 8, 32, 257), (1, 2000, 3, 20, 50)])
+@pytest.mark.parametrize("one_key", [True, False])
+def test_torch_splat_equals_numba_kernel_bit_for_bit(B, N, K, res, chunk_pairs, one_key, monkeypatch):
+    """The CUDA path's vectorised K-nearest search against the numba kernel: same ids, order and
+    depths, also when the pairs are cut into many chunks (lists merged across chunks), with
+    off-screen, behind-the-camera, NaN, infinite-depth and zero-radius points, on a non-square
+    image, and with the two-sort fallback for keys too large for int64."""
+    if not one_key:
+        monkeypatch.setattr(kernels, "SPLAT_KEY_LIMIT", 0)
+    gen = torch.Generator().manual_seed(10 * B + K)
+    xyz, radius = _awkward_cloud(B, N, res, gen)
+    for H, W in ((res, res), (res - 5, res + 7)):
+        idx, depth = kernels.splat_numba(xyz.numpy(), radius.numpy(), H, W, K)
+        vec_idx, vec_depth = kernels.splat_torch(xyz, radius, H, W, K, chunk_pairs=chunk_pairs)
+        assert vec_idx.shape == (B, H, W, K) and vec_idx.dtype == torch.int64 and vec_depth.dtype == torch.float64
+        np.testing.assert_array_equal(vec_idx.numpy(), idx)
+        np.testing.assert_array_equal(vec_depth.numpy(), depth)
+        assert (idx[..., K - 1] >= 0).any() and (idx[..., 0] < 0).any()  # full lists and empty pixels occur
+        m = N // 10
+        assert not np.isin(idx, np.arange(m, 2 * m + 5)).any()  # behind, NaN, inf depth, zero/NaN radius
+        assert (idx == 2 * m + 5).any() == (H == res)  # the corner disc shows where the corner is
+    scalar = kernels.splat_torch(xyz, torch.tensor(1.5, dtype=torch.float64), res, res, K)  # broadcast radius
+    np.testing.assert_array_equal(scalar[0].numpy(), kernels.splat_numba(xyz.numpy(), np.full((B, N), 1.5), res, res, K)[0])
+    empty = kernels.splat_torch(xyz[:, :0], radius[:, :0], res, res, K)
+    assert empty[0].eq(-1).all() and torch.isinf(empty[1]).all()
+    with pytest.raises(ValueError, match="K must be"):
+        kernels.splat_torch(xyz, radius, res, res, 0)
+
+
+def test_torch_splat_equals_torch_reference():
+    gen = torch.Generator().manual_seed(3)
+    pts = (torch.rand(2, 300, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.15
+    xyz = _cams(30, B=2).project(pts)
+    radius = 0.5 + 2.5 * torch.rand(2, 300, generator=gen, dtype=torch.float64)
+    ref_idx, ref_depth = kernels.splat_reference(xyz, radius, 30, 30, 6)
+    idx, depth = kernels.splat_torch(xyz, radius, 30, 30, 6, chunk_pairs=500)
+    np.testing.assert_array_equal(idx.numpy(), ref_idx.numpy())
+    np.testing.assert_array_equal(depth.numpy(), ref_depth.numpy())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_splat_torch_backend_equals_numba_backend(dtype):
+    """points.splat with backend="torch" (what CUDA tensors get) gives the numba path's
+    fragments, features, mask, max_weight and gradients."""
+    gen = torch.Generator().manual_seed(4)
+    pts = ((torch.rand(2, 500, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.15).to(dtype)
+    pts[0, 0] = float("nan")
+    pts[1, :20, 2] = 0.8  # behind the camera (distance 0.5)
+    feats = torch.rand(2, 500, 3, generator=gen, dtype=dtype)
+    radius = (0.8 + 2 * torch.rand(500, generator=gen, dtype=torch.float64)).to(dtype)
+    cams = _cams(36, dtype=dtype, B=2)
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=dtype)
+    outs, grads = [], []
+    for backend in ("numba", "torch"):
+        p, f = pts.clone().requires_grad_(), feats.clone().requires_grad_()
+        out = points.splat(cams, p, f, radius, K=5, background=bg, backend=backend)
+        (out.features.square().sum() + out.mask.sum()).backward()
+        outs.append(out)
+        grads.append((p.grad, f.grad))
+    a, b = outs
+    torch.testing.assert_close(b.fragments.idx, a.fragments.idx, atol=0, rtol=0)
+    torch.testing.assert_close(b.fragments.depth, a.fragments.depth, atol=0, rtol=0)
+    torch.testing.assert_close(b.features, a.features, atol=0, rtol=0)
+    torch.testing.assert_close(b.mask, a.mask, atol=0, rtol=0)
+    torch.testing.assert_close(b.max_weight, a.max_weight, atol=0, rtol=0)
+    for ga, gb in zip(*grads):
+        torch.testing.assert_close(gb, ga, atol=0, rtol=0)
+    assert a.mask.max() > 0.9 and b.fragments.depth.dtype == dtype
+    with pytest.raises(ValueError, match="backend must be"):
+        points.splat(cams, pts, feats, radius, backend="cuda")
+
+
 def test_point_sampled_sphere_matches_the_analytic_disc():
     R, d, res = 0.1, 0.5, 128
     cams = _cams(res, distance=d)

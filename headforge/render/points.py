@@ -1,8 +1,9 @@
 """Differentiable point splatting (PyTorch3D-style) for point avatars.
 
 Each point is a screen-space disc of radius r pixels (per point or global). Per pixel the K
-nearest points in depth whose disc covers the pixel centre are found by a numba kernel (not
-differentiable); then in torch, alpha_i = 1 - d_i^2 / r_i^2 and front-to-back compositing
+nearest points in depth whose disc covers the pixel centre are found by a numba kernel on the CPU
+or the same search vectorised in PyTorch on CUDA (not differentiable); then in torch,
+alpha_i = 1 - d_i^2 / r_i^2 and front-to-back compositing
 C = sum_i alpha_i T_i c_i, M = sum_i alpha_i T_i with T_i = prod_{j<i} (1 - alpha_j), which is
 differentiable w.r.t. positions, features and radii.
 """
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from headforge.render.camera import Cameras
-from headforge.render.kernels import splat_numba
+from headforge.render.kernels import splat_numba, splat_torch
 
 
 @dataclass
@@ -49,11 +50,15 @@ def _radius(radius: torch.Tensor | float, B: int, N: int, like: torch.Tensor) ->
 
 
 def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius: torch.Tensor | float,
-          K: int = 8, background: torch.Tensor | None = None, near: float = 1e-3) -> PointImage:
+          K: int = 8, background: torch.Tensor | None = None, near: float = 1e-3,
+          backend: str = "auto") -> PointImage:
     """Render points (B, N, 3, world) with features (B, N, C) as discs of ``radius`` pixels.
 
     Points behind ``near`` or with NaN coordinates are ignored. ``background`` (C,) or
-    (B, H, W, C) is composited behind (weight 1 - mask).
+    (B, H, W, C) is composited behind (weight 1 - mask). ``backend`` picks the visibility search:
+    "numba" (the CPU kernel), "torch" (the same search vectorised in PyTorch, run on the points'
+    device) or "auto": numba for CPU tensors, torch for any other device, so a CUDA run never
+    copies points to the host. Both give identical fragments (tests/test_render.py).
     """
     if points.ndim != 3 or points.shape[-1] != 3:
         raise ValueError(f"points must be (B, N, 3), got {tuple(points.shape)}")
@@ -64,11 +69,16 @@ def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius
         raise ValueError(f"{B} point clouds but {cameras.batch_size} cameras")
     if K < 1:
         raise ValueError(f"K must be >= 1, got {K}")
+    if backend not in ("auto", "numba", "torch"):
+        raise ValueError(f"backend must be auto, numba or torch, got {backend!r}")
     H, W = cameras.height, cameras.width
     xyz = cameras.project_finite(points)  # NaN points: invisible (the kernel skips z <= near)
     r = _radius(radius, B, N, xyz)
-    idx_np, depth_np = splat_numba(xyz.detach().double().cpu().numpy(), r.detach().double().cpu().numpy(), H, W, K, near)
-    idx = torch.from_numpy(idx_np).to(points.device)
+    if backend == "torch" or (backend == "auto" and points.device.type != "cpu"):
+        idx, frag_depth = splat_torch(xyz.detach(), r.detach(), H, W, K, near)
+    else:
+        idx_np, depth_np = splat_numba(xyz.detach().double().cpu().numpy(), r.detach().double().cpu().numpy(), H, W, K, near)
+        idx, frag_depth = torch.from_numpy(idx_np).to(points.device), torch.from_numpy(depth_np).to(points.device)
     valid = idx >= 0
     safe = idx.clamp(min=0).reshape(B, -1)
     gather = lambda t: torch.gather(t, 1, safe[..., None].expand(-1, -1, t.shape[-1])).reshape(B, H, W, K, t.shape[-1])  # noqa: E731
@@ -85,4 +95,4 @@ def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius
         out = out + (1 - mask[..., None]) * background.to(out.dtype)
     max_weight = torch.zeros(B, N, dtype=weight.dtype, device=weight.device)
     max_weight = max_weight.scatter_reduce(1, safe, torch.where(valid, weight, torch.zeros_like(weight)).reshape(B, -1).detach(), reduce="amax")
-    return PointImage(out, mask, max_weight, PointFragments(idx, torch.from_numpy(depth_np).to(points.device, xyz.dtype)))
+    return PointImage(out, mask, max_weight, PointFragments(idx, frag_depth.to(xyz.dtype)))
