@@ -203,7 +203,9 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
             (run / name).unlink(missing_ok=True)
     stages = method.stages(config)
     total = sum(s.iterations for s in stages)
-    gen = torch.Generator().manual_seed(config.seed + state["iteration"])
+    gen = torch.Generator().manual_seed(config.seed)
+    for _ in range(state["iteration"]):  # a resumed run draws the batches the killed one would have
+        torch.randperm(len(train), generator=gen)
     start = time.perf_counter() - state["seconds"]
     ctx = TrainingContext(run, method, avatar, config, optimisers, train, val_all, state, log, start, state["iteration"])
     loss_file = (run / "losses.csv").open("a")

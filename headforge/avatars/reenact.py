@@ -42,9 +42,10 @@ def truncate(seq: FrameParams, max_frames: int | None) -> FrameParams:
 
 @torch.no_grad()
 def render_sequence(avatar, K: torch.Tensor, resolution: int, seq: FrameParams, orbit: bool = False,
-                    orbit_degrees: float = 30.0):
+                    orbit_degrees: float = 30.0, options: dict | None = None):
     """Yield (R, R, 3) frames of ``seq`` on white, optionally with the head turning by up to
-    ``orbit_degrees`` about the camera's vertical axis (novel views)."""
+    ``orbit_degrees`` about the camera's vertical axis (novel views); ``options``: passed to the
+    avatar's render (e.g. a point avatar's ``light``)."""
     from scipy.spatial.transform import Rotation
 
     from headforge.render.camera import Cameras
@@ -58,4 +59,4 @@ def render_sequence(avatar, K: torch.Tensor, resolution: int, seq: FrameParams, 
             yaw = orbit_degrees * math.sin(2 * math.pi * t / max(T, 1))
             turned = Rotation.from_euler("y", yaw, degrees=True) * Rotation.from_rotvec(params["root_pose"][0].numpy())
             params["root_pose"] = torch.tensor(turned.as_rotvec(), dtype=torch.float32)[None]
-        yield avatar.render(params, Cameras.at_origin(K, 1, resolution), background=1.0).rgb[0].clamp(0, 1).numpy()
+        yield avatar.render(params, Cameras.at_origin(K, 1, resolution), background=1.0, **(options or {})).rgb[0].clamp(0, 1).numpy()

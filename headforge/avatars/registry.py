@@ -7,7 +7,7 @@ from headforge.avatars.base import Method
 from headforge.errors import HeadforgeError
 
 _METHODS: dict[str, type[Method]] = {}
-_BUILTIN = {"nha": "headforge.avatars.nha.method"}
+_BUILTIN = {"nha": "headforge.avatars.nha.method", "pointavatar": "headforge.avatars.pointavatar.method"}
 
 
 def register(cls: type[Method]) -> type[Method]:

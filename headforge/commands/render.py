@@ -42,21 +42,32 @@ def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit")
            orbit: bool = typer.Option(False, help="orbit the camera around the head (novel views)"),
            split: str = typer.Option("val", help="frames of the run's own dataset when not driven: train, val or all"),
            max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
+           light: Optional[str] = typer.Option(None, help="relight (point avatars): a direction X,Y,Z toward the light "
+                                                          "(Lambert on the learned albedo; head axes: x the subject's "
+                                                          "left, y up, z to the camera), rotate:DEGREES (the learned "
+                                                          "shading, light turned) or a file of 9x3 SH coefficients"),
            fps: float = typer.Option(25.0)) -> None:
-    """Reenactment and novel views of a trained avatar, from the run folder alone."""
+    """Reenactment, novel views and relighting of a trained avatar, from the run folder alone."""
     from headforge.avatars.reenact import driving_sequence, own_sequence, render_sequence, truncate
     from headforge.avatars.run import load_run
     from headforge.render.io import write_mp4
 
     if fps <= 0:
         raise HeadforgeError(f"--fps must be > 0, got {fps}")
+    options = {}
+    if light is not None:
+        from headforge.render.shading import parse_light
+
+        options["light"] = parse_light(light)
     r = load_run(run)
+    if options and not getattr(r.avatar, "relightable", False):
+        raise HeadforgeError(f"--light: {r.method.name} avatars cannot be relit (PointAvatar's can)")
     seq = driving_sequence(r.avatar, r.assets, driving) if driving is not None else own_sequence(r.avatar, r.assets, split)
     seq = truncate(seq, max_frames)
     T = seq["translation"].shape[0]
     if T == 0:
         raise HeadforgeError(f"no frames to render ({'the driving dataset' if driving else 'split ' + split} is empty)")
     K = r.assets.intrinsics(r.config.resolution)
-    write_mp4(output, render_sequence(r.avatar, K, r.config.resolution, seq, orbit=orbit), fps=fps, total=T,
+    write_mp4(output, render_sequence(r.avatar, K, r.config.resolution, seq, orbit=orbit, options=options), fps=fps, total=T,
               description=f"rendering {T} frames")
     print(json.dumps({"output": str(output), "frames": T}))

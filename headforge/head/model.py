@@ -245,6 +245,24 @@ class HeadModel(torch.nn.Module):
         """(F, 3, 2) UV coordinates of every face corner (v up)."""
         return self.uvs[self.uv_faces]
 
+    def skinning_transforms(self, shape: torch.Tensor, expression: torch.Tensor,
+                            poses: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the skinning of :meth:`forward` applies, for points that carry their own
+        blendshapes and weights (point avatars): the per-joint transforms (B, J, 4, 4) mapping
+        rest-pose points (metres, canonical head space) to posed ones, and the pose feature
+        (B, 9 * (J - 1)) that drives pose correctives (flattened ``R - I`` of every non-root joint).
+        ``poses``: {root_pose: (B, 3), ...} (missing joints rest); translation is not applied."""
+        B = shape.shape[0]
+        coeffs = torch.cat([shape, expression], 1).to(self.v_template.dtype)
+        rest_joints = lbs_fn.blend_shapes(coeffs, self.j_blenddirs, self.j_template)
+        pose = torch.stack([poses[k] if poses.get(k) is not None else shape.new_zeros(B, 3) for k in POSE_ARGS], 1)
+        if self.joint_limits:
+            pose = lbs_fn.limit_joint_rotations(pose, self.joint_half_range)
+        rotmats = lbs_fn.pose_to_rotmats(pose)
+        eye = torch.eye(3, dtype=rotmats.dtype, device=rotmats.device)
+        _, transforms = lbs_fn.rigid_transforms(rotmats, rest_joints, self.parent_list)
+        return transforms, (rotmats[:, 1:] - eye).reshape(B, -1)
+
     # ---- forward -----------------------------------------------------------------------
     def _batch(self, given: dict[str, torch.Tensor | None], widths: dict[str, int]) -> int:
         sizes = {}

@@ -47,3 +47,40 @@ def constant_sh(intensity: float = 1.0, channels: int = 3) -> torch.Tensor:
     coeffs = torch.zeros(9, channels)
     coeffs[0] = intensity / (math.pi * 0.282095)
     return coeffs
+
+
+def parse_light(text: str) -> dict:
+    """A light given on the command line: ``X,Y,Z`` (a direction toward the light: Lambert),
+    ``rotate:DEGREES`` (the learned shading's normals turned about the vertical axis: a
+    light-direction change), or the path of a text/JSON file with 9 x 3 SH coefficients. Axes are
+    the head's: x to the subject's left, y up, z toward the camera."""
+    import json
+    from pathlib import Path
+
+    from headforge.errors import HeadforgeError
+
+    text = text.strip()
+    if text.startswith("rotate:"):
+        try:
+            degrees = float(text.split(":", 1)[1])
+        except ValueError:
+            raise HeadforgeError(f"--light {text!r}: rotate:DEGREES needs a number") from None
+        a = math.radians(degrees)
+        R = torch.tensor([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+        return {"rotate": R}
+    path = Path(text)
+    if path.is_file():
+        try:
+            raw = path.read_text()
+            values = json.loads(raw) if raw.lstrip().startswith(("[", "{")) else [float(v) for v in raw.replace(",", " ").split()]
+            coeffs = torch.tensor(values, dtype=torch.float32).reshape(9, 3)
+        except (ValueError, RuntimeError, TypeError):
+            raise HeadforgeError(f"--light {path}: expected 9 x 3 SH coefficients (27 numbers)") from None
+        return {"sh": coeffs}
+    try:
+        direction = [float(v) for v in text.split(",")]
+    except ValueError:
+        direction = []
+    if len(direction) != 3 or not any(direction):
+        raise HeadforgeError(f"--light {text!r} is not a direction X,Y,Z (non-zero), rotate:DEGREES or an SH file")
+    return {"direction": torch.tensor(direction)}

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from headforge.avatars.base import Method, Stage
+from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.nha.config import NHAConfig
 from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 from headforge.avatars.registry import register
@@ -186,12 +186,7 @@ def albedo_tv(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
 
 
 def optimisers(avatar, config: NHAConfig) -> dict:
-    # SGD per frame parameter group, scaled so one step moves translation by ~0.1 mm and
-    # rotations by ~1e-3 rad at typical gradients (momentum would keep moving frames that
-    # are not in the batch).
-    scale = {"translation": 0.01, "root_pose": 0.1, "neck_pose": 0.1, "jaw_pose": 0.1, "eye_left_pose": 0.1,
-             "eye_right_pose": 0.1, "expression": 1.0}
-    frames = torch.optim.SGD([{"params": [avatar.frames[k]], "lr": config.lr_frames * scale[k]} for k in scale])
+    frames = frame_optimiser(avatar, config.lr_frames)
     geometry = torch.optim.Adam([{"params": avatar.geometry_net.parameters(), "lr": config.lr_geometry},
                                  {"params": [avatar.shape], "lr": config.lr_shape}])
     grids = ("grid", "mouth_grid")

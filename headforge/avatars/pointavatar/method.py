@@ -1,0 +1,144 @@
+"""PointAvatar as a platform method: energies (Eq. 2, 11), optimisers, the coarse-to-fine hooks
+(prune every ``prune_every``, double every ``upsample_every`` iterations; both change the number
+of parameters, so the engine rebuilds the optimisers) and the pictures after training.
+
+Energies over the protocol's head region (``batch["region"]``, from the tracked head model): the
+RGB L1 against the frame matted on white, the mask L1, the head-model regulariser (expression
+blendshapes, pose correctives and skinning weights against the nearest canonical head-model
+vertex's), the SDF data term at the points and the Eikonal term at the points and perturbed
+copies. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
+as the paper's test-time tracking does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from headforge.avatars.base import Method, Stage, frame_optimiser
+from headforge.avatars.pointavatar.config import PointAvatarConfig
+from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel, initial_point_radius
+from headforge.avatars.registry import register
+from headforge.metrics.protocol import matte_on_white
+from headforge.render.camera import Cameras
+
+
+def nearest_vertices(points: torch.Tensor, vertices: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """(N,) index of the nearest of ``vertices`` (V, 3) to each of ``points`` (N, 3)."""
+    if points.device.type == "cpu":
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(vertices.detach().numpy()).query(points.detach().numpy())
+        return torch.from_numpy(idx.astype(np.int64))
+    return torch.cat([torch.cdist(p, vertices).argmin(1) for p in points.detach().split(chunk)])
+
+
+def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> torch.Tensor:
+    """Mean over points of lambda_e |E - E^|^2 + lambda_p |P - P^|^2 + lambda_w |W - W^|^2, the
+    targets from the nearest canonical head-model vertex of each point's x_o (IMavatar's)."""
+    x_o = c.q * SCALE + avatar.centre + c.O
+    nearest = nearest_vertices(x_o, avatar.canonical_vertices).to(x_o.device)
+    E, P = avatar.deformer.blendshapes(c.h)
+    e = (E - avatar.vertex_exprdirs[nearest]).pow(2).sum((1, 2))
+    p = (P - avatar.vertex_posedirs[nearest]).pow(2).sum((1, 2))
+    w = (c.W - avatar.vertex_weights[nearest]).pow(2).sum(1)
+    return (config.w_expr * e + config.w_pose * p + config.w_weights * w).mean()
+
+
+def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: torch.Generator | None = None) -> torch.Tensor:
+    """(|grad SDF| - 1)^2 at (a subsample of) the points and as many uniformly perturbed copies
+    (+-0.4 normalised units, the authors' +-0.25 in FLAME x 4 units)."""
+    q, grad = c.q.detach(), c.grad
+    n = config.eikonal_samples
+    if 0 < n < len(q):
+        rows = torch.randperm(len(q), generator=gen)[:n].to(q.device)
+        q, grad = q[rows], grad[rows]
+    noise = (torch.rand(q.shape, generator=gen).to(q) - 0.5) * 0.8
+    _, grad_perturbed, _ = avatar.canonical_net.sdf_and_normal(q + noise, create_graph=True)
+    g = torch.cat([grad, grad_perturbed])
+    return (g.norm(dim=-1) - 1).pow(2).mean()
+
+
+def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: PointAvatarConfig, stage: str,
+           params: dict | None = None) -> dict[str, torch.Tensor]:
+    from headforge.metrics.image import ssim
+
+    B = len(batch["index"])
+    params = avatar.frame_params(batch["index"]) if params is None else params
+    training = stage == "train"
+    r = avatar.render(params, Cameras.at_origin(K, B, config.resolution), background=1.0, training=training,
+                      hole_filling=False)
+    region = batch["region"]
+    w = region[..., None].float()
+    target = matte_on_white(batch["image"], batch["mask"])
+    out = {"rgb": config.w_rgb * ((r.rgb - target).abs() * w).sum() / w.sum().clamp(min=1) / 3}
+    if not training:
+        return out
+    with torch.no_grad():
+        avatar.visible |= (r.max_weight > 0.5).any(0)
+    out["mask"] = config.w_mask * ((r.coverage - batch["mask"]).abs() * region).sum() / region.sum().clamp(min=1)
+    if config.w_ssim > 0:
+        out["ssim"] = config.w_ssim * (1 - ssim(r.rgb * w + (1 - w), target * w + (1 - w)).mean())
+    c = r.canonical
+    out["flame"] = config.w_flame * head_model_term(avatar, c, config)
+    out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()
+    gen = torch.Generator().manual_seed(config.seed * 7919 + int(avatar.train_steps))
+    avatar.train_steps += 1
+    out["eikonal"] = config.w_eikonal * eikonal_term(avatar, c, config, gen)
+    return out
+
+
+@register
+class PointAvatarMethod(Method):
+    name = "pointavatar"
+    Config = PointAvatarConfig
+
+    def build(self, assets, config: PointAvatarConfig) -> PointAvatarModel:
+        config.validate()
+        if config.init_point_radius <= 0:
+            config.init_point_radius = initial_point_radius(config.init_points, config.init_radius)
+        rows = assets.rows("train")
+        canonical_expression = assets.tracking["expression"][rows].float().mean(0)
+        return PointAvatarModel(assets.head_data(), assets.tracking, canonical_expression, config)
+
+    def stages(self, config: PointAvatarConfig) -> list[Stage]:
+        return [Stage("train", config.iterations, ("networks", "points", "frames"))]
+
+    def optimisers(self, avatar: PointAvatarModel, config: PointAvatarConfig) -> dict:
+        nets = [p for n, p in avatar.named_parameters() if not n.startswith(("frames.", "points"))]
+        return {"networks": torch.optim.Adam(nets, lr=config.lr),
+                "points": torch.optim.Adam([avatar.points], lr=config.lr_points),
+                "frames": frame_optimiser(avatar, config.lr_frames)}
+
+    def losses(self, avatar, batch, K, config, stage, params=None):
+        return losses(avatar, batch, K, config, stage, params)
+
+    def after_iteration(self, ctx) -> bool:
+        """Prune, then double, on their schedules (not after the last iteration)."""
+        config, avatar, it = ctx.config, ctx.avatar, ctx.iteration
+        if it >= config.iterations:
+            return False
+        changed = False
+        if it % config.prune_every == 0:
+            before = avatar.n_points
+            removed = avatar.prune()
+            ctx.state.setdefault("pruned", []).append([it, before, removed])
+            changed = True
+        if it % config.upsample_every == 0 and 2 * avatar.n_points <= config.max_points:
+            avatar.upsample(torch.Generator().manual_seed(config.seed + it), config.radius_factor)
+            changed = True
+        if changed:
+            ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])
+        return changed
+
+    def after_training(self, ctx) -> dict:
+        from headforge.avatars.pointavatar.pictures import write_pictures
+
+        write_pictures(ctx.avatar, ctx.train, ctx.config, ctx.state, ctx.run)
+        return {"n_points": ctx.avatar.n_points, "point_radius_mm": round(1000 * float(ctx.avatar.radius), 3)}
+
+    def extra_scores(self, ctx) -> dict:
+        from headforge.avatars.engine import score
+
+        raw, _ = score(self, ctx.avatar, ctx.val, ctx.config, render_options={"hole_filling": False})
+        return {"val_psnr_no_hole_filling": raw["psnr"], "val_psnr_head_no_hole_filling": raw["psnr_head"]}

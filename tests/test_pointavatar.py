@@ -1,0 +1,168 @@
+"""PointAvatar: the deformed normals are the Jacobian's inverse transpose (against finite
+differences), the coarse-to-fine steps keep what they should, a killed run resumes exactly, and
+a tiny run trains, relights, renders and exports through the CLI."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from headforge.errors import HeadforgeError
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+@pytest.fixture
+def tiny_head(monkeypatch):
+    import headforge.head
+    from conftest import tiny_nha_head_data
+
+    data = tiny_nha_head_data()
+    original = headforge.head.load_data
+    monkeypatch.setattr(headforge.head, "load_data",
+                        lambda name="open-head", *a, **k: data if name == data.name else original(name, *a, **k))
+    return data
+
+
+@pytest.fixture
+def rendered(tmp_path, tiny_head):
+    from conftest import write_rendered_dataset
+
+    return write_rendered_dataset(tmp_path / "data", tiny_head)
+
+
+def tiny_config(**changes):
+    from headforge.avatars.pointavatar.config import PointAvatarConfig
+
+    values = dict(resolution=64, iterations=12, init_points=300, upsample_every=5, prune_every=4, max_points=2000,
+                  canonical_width=32, canonical_layers=3, canonical_skip=2, frequencies=2, deformer_width=32,
+                  deformer_layers=2, shading_width=16, val_every=6, checkpoint_every=4, val_frames=2, tto_steps=2,
+                  tto_photometric_steps=0, val_tto_steps=1, lr=1e-3, lr_points=1e-3, points_per_pixel=4)
+    return PointAvatarConfig(**(values | changes))
+
+
+def deformed_avatar(rendered, **changes):
+    """An avatar of the tiny dataset whose deformer heads are random (not the zero init), in
+    float64, with the frame parameters of two frames moved off rest."""
+    from headforge.avatars import registry
+    from headforge.avatars.run import RunAssets
+
+    method = registry.get("pointavatar")
+    avatar = method.build(RunAssets.from_dataset(rendered), tiny_config(**changes)).double()
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for lin in (avatar.deformer.expr, avatar.deformer.pose, avatar.deformer.offset, avatar.deformer.skin):
+            lin.weight.copy_(torch.randn(lin.weight.shape, generator=g, dtype=torch.float64) * 0.5)
+            lin.bias.copy_(torch.randn(lin.bias.shape, generator=g, dtype=torch.float64) * 0.5)
+        for k in ("expression", "jaw_pose", "neck_pose", "root_pose"):
+            avatar.frames[k][:2] += torch.randn(avatar.frames[k][:2].shape, generator=g, dtype=torch.float64) * 0.3
+    return avatar
+
+
+def test_deformed_normals_are_the_inverse_transpose_of_the_deformation_jacobian(rendered):
+    avatar = deformed_avatar(rendered)
+    params = avatar.frame_params(torch.tensor([0, 1]))
+    with torch.no_grad():
+        c = avatar.canonical(False)
+        x_d, n_d = avatar.deform(c, params)
+        q0 = avatar.points.detach().clone()
+        eps = 1e-6
+        columns = []
+        for k in range(3):  # points are independent: move every point along axis k at once
+            moved = []
+            for sign in (1, -1):
+                avatar.points.copy_(q0)
+                avatar.points[:, k] += sign * eps
+                avatar._cache = None
+                moved.append(avatar.deform(avatar.canonical(False), params)[0])
+            columns.append((moved[0] - moved[1]) / (2 * eps))
+        avatar.points.copy_(q0)
+    jac = torch.stack(columns, -1)  # (B, N, 3, 3) dx_d / dq by central differences
+    n_c = torch.nn.functional.normalize(c.grad, dim=-1)
+    expected = torch.nn.functional.normalize(torch.linalg.solve(jac.transpose(-1, -2), n_c.expand_as(x_d)[..., None])[..., 0], dim=-1)
+    assert (n_d * expected).sum(-1).min() > 1 - 1e-8
+    # the rotation-only normals (the ablation) differ measurably once blendshapes and weights vary
+    avatar.jacobian_normals, avatar._cache = False, None
+    with torch.no_grad():
+        x_r, n_r = avatar.deform(avatar.canonical(False), params)
+    assert torch.allclose(x_r, x_d)
+    assert (n_r * expected).sum(-1).mean() < 1 - 1e-4
+
+
+def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(rendered):
+    avatar = deformed_avatar(rendered).float()
+    q = avatar.points.detach().clone()
+    keep = torch.zeros(len(q), dtype=torch.bool)
+    keep[::3] = True
+    avatar.visible = keep.clone()
+    assert avatar.prune() == int((~keep).sum())
+    assert torch.equal(avatar.points.detach(), q[keep]) and not avatar.visible.any()
+    radius = float(avatar.radius)
+    avatar.upsample(torch.Generator().manual_seed(1), 0.75)
+    p = avatar.points.detach()
+    n = int(keep.sum())
+    assert len(p) == 2 * n and torch.equal(p[:n], q[keep])
+    from headforge.avatars.pointavatar.model import SCALE
+
+    assert ((p[n:] - p[:n]).abs().max() * SCALE) <= radius + 1e-7 and (p[n:] != p[:n]).any()
+    assert float(avatar.radius) == pytest.approx(0.75 * radius)
+    with pytest.raises(HeadforgeError, match="pruned away"):
+        avatar.prune()  # nothing was visible since
+
+
+def test_a_killed_pointavatar_run_resumes_to_the_same_result(rendered, tmp_path, interrupt_after):
+    from headforge.avatars.engine import fit
+
+    config = tiny_config()
+    straight = fit("pointavatar", rendered, tmp_path / "a", config, log=lambda m: None)
+    with pytest.raises(KeyboardInterrupt):  # killed after 9 steps: the cloud was pruned at 4 and 8, doubled at 5
+        fit("pointavatar", rendered, tmp_path / "b", tiny_config(), log=lambda m: None, progress=interrupt_after(10))
+    state = json.loads((tmp_path / "b" / "state.json").read_text())
+    assert state["iteration"] == 8 and [row[0] for row in state["points"]] == [4, 5, 8]
+    resumed = fit("pointavatar", rendered, tmp_path / "b", tiny_config(), log=lambda m: None)
+    from safetensors.torch import load_file
+
+    a, b = load_file(tmp_path / "a" / "checkpoint.safetensors"), load_file(tmp_path / "b" / "checkpoint.safetensors")
+    assert a.keys() == b.keys() and all(torch.allclose(a[k], b[k], atol=1e-5) for k in a)
+    assert resumed["n_points"] == straight["n_points"]
+    assert resumed["val_psnr"] == pytest.approx(straight["val_psnr"], abs=0.01)
+    for name in ("canonical_points.png", "points.png", "progress.png", "val_worst.png", "metrics.json"):
+        assert (tmp_path / "b" / name).is_file(), name
+
+
+def test_pointavatar_fits_relights_renders_and_exports_through_the_cli(rendered, tmp_path):
+    from typer.testing import CliRunner
+
+    from headforge.cli import app
+
+    runner = CliRunner()
+    run = tmp_path / "run"
+    args = ["fit", "pointavatar", str(rendered), "-o", str(run), "--iterations", "8", "--resolution", "64"]
+    for field, value in tiny_config().__dict__.items():
+        if field in ("canonical_width", "canonical_layers", "canonical_skip", "frequencies", "deformer_width",
+                     "deformer_layers", "shading_width", "init_points", "tto_steps", "val_tto_steps", "val_frames"):
+            args += ["--set", f"{field}={value}"]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    metrics = json.loads(res.stdout.strip().splitlines()[-1])
+    assert metrics["method"] == "pointavatar" and metrics["n_points"] > 0 and 5 < metrics["val_psnr"] < 60
+    for extra in ([], ["--orbit"], ["--light", "0,1,1"], ["--light", "rotate:90"]):
+        out = tmp_path / f"render{len(extra)}{extra[-1].replace(':', '_') if extra else ''}.mp4"
+        res = runner.invoke(app, ["render", "avatar", str(run), "-o", str(out)] + extra)
+        assert res.exit_code == 0, res.output
+        assert out.is_file()
+    res = runner.invoke(app, ["render", "avatar", str(run), "-o", str(tmp_path / "bad.mp4"), "--light", "up"])
+    assert res.exit_code != 0 and "--light" in str(res.exception) and not (tmp_path / "bad.mp4").exists()
+    res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / "ply"), "--format", "ply"])
+    assert res.exit_code == 0, res.output
+    import trimesh
+
+    cloud = trimesh.load(tmp_path / "ply" / "canonical.ply")
+    assert len(cloud.vertices) == metrics["n_points"]
+    header = (tmp_path / "ply" / "canonical.ply").read_bytes()[:400].decode(errors="ignore")
+    assert "property float nx" in header and "property float radius" in header and "property uchar red" in header
+    assert any(p.name.startswith("frame_") for p in (tmp_path / "ply").iterdir())
