@@ -350,7 +350,10 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
 @torch.no_grad()
 def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
     """Camera-space surfaces of the avatar at the frames that carry ground truth in a synth
-    dataset (the ``headforge eval`` geometry format)."""
+    dataset (the ``headforge eval`` geometry format): a mesh (``vertices``, ``faces``,
+    ``face_vertices``, ``head_vertices``) or, for a point avatar, a point set (``points`` (T, N, 3)
+    metres, unit ``normals`` (T, N, 3), world ``radius`` (T, N) metres; the same N in every frame).
+    Written to a temporary name and renamed."""
     from safetensors.numpy import load_file, save_file
 
     frames = load_file(str(dataset / "gt" / "geometry.safetensors"))["frames"]
@@ -359,11 +362,22 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
     parts = [avatar.geometry(avatar.frame_params(torch.from_numpy(chunk)))
              for chunk in np.array_split(frames, max(1, len(frames) // 8))]
     g = parts[0]
-    if g.faces is None:
-        return  # point avatars: the geometry metrics need a mesh
-    save_file({"frames": frames.astype(np.int64), "vertices": torch.cat([p.vertices for p in parts]).cpu().numpy().astype(np.float32),
-               "faces": g.faces.cpu().numpy().astype(np.int64), "face_vertices": g.face_vertices.cpu().numpy(),
-               "head_vertices": g.head_vertices.cpu().numpy()}, str(path))
+    as_np = lambda t: t.detach().cpu().numpy()  # noqa: E731
+    cat = lambda key: np.concatenate([as_np(getattr(p, key)) for p in parts]).astype(np.float32)  # noqa: E731
+    if g.faces is None:  # a point avatar: points with normals and splat radii
+        if g.normals is None or g.radius is None:
+            raise HeadforgeError("a point avatar's Geometry needs normals and radius for the geometry metrics")
+        radius = np.concatenate([as_np(p.radius.expand(p.vertices.shape[:2])) for p in parts]).astype(np.float32)
+        arrays = {"frames": frames.astype(np.int64), "points": cat("vertices"), "normals": cat("normals"),
+                  "radius": radius}
+    else:
+        arrays = {"frames": frames.astype(np.int64), "vertices": cat("vertices"),
+                  "faces": as_np(g.faces).astype(np.int64), "face_vertices": as_np(g.face_vertices),
+                  "head_vertices": as_np(g.head_vertices)}
+    tmp = path.with_name(path.stem + ".tmp.safetensors")
+    # safetensors' numpy writer copies the buffer as laid out: a strided array is written scrambled
+    save_file({k: np.ascontiguousarray(v) for k, v in arrays.items()}, str(tmp))
+    tmp.replace(path)
 
 
 def _truncate_log(path: Path, iteration: int) -> None:

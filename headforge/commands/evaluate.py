@@ -27,7 +27,8 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
              as_json: bool = typer.Option(False, "--json", help="print the mean metrics as one JSON object")) -> None:
     """Image metrics (L1, PSNR, SSIM, MS-SSIM, CPBD; LPIPS when its weights exist) between two
     folders; or, when GT is a synth subject, geometry metrics (normal angle error, one-sided
-    Hausdorff full head / face in mm, normal consistency) of a tracked dataset or exported geometry;
+    Hausdorff full head / face in mm, normal consistency) of a tracked dataset or exported geometry
+    (a mesh, or a point avatar's point set: its points splatted for the normal maps);
     with --reference, also the normal errors of both predictions on the pixels both cover; or,
     when PRED is a run folder of headforge fit and GT its dataset (not a synth subject, or with
     --protocol), the scoring protocol of its held-out frames (metrics.json, metrics.md, val_worst.png)."""
@@ -51,7 +52,7 @@ def evaluate(pred: Path = typer.Argument(..., help="predicted images, or a track
         result = evaluate_geometry(pred, gt, split=split, every=every)
         result["mean"] |= {f"paired_{k}": v for k, v in pair.items()}
         write_geometry_report(result, output)
-        summary = {"frames": result["frames"], "hair": result["hair"], **result["mean"]}
+        summary = {"frames": result["frames"], "kind": result["kind"], "hair": result["hair"], **result["mean"]}
     else:
         from headforge.metrics.evaluate import evaluate_folders, write_report
 

@@ -23,9 +23,32 @@ For every ground-truth frame of the chosen split (``gt/geometry.safetensors`` li
 pixels both cover: the like-for-like comparison the per-prediction normal error is not.
 
 A prediction is either a tracked dataset (the head model posed with ``tracking.safetensors``;
-the baseline row) or a folder with ``geometry.safetensors`` holding camera-space
+the baseline row) or a folder with ``geometry.safetensors`` holding either a mesh: camera-space
 ``vertices`` (N, V, 3) for ``frames`` (N,), ``faces`` (F, 3) and bool vertex masks
-``face_vertices`` / ``head_vertices`` (V,) -- what avatar trainers export.
+``face_vertices`` / ``head_vertices`` (V,) -- what mesh avatar trainers export; or a point set
+(point avatars, PointAvatar): ``frames`` (N,), camera-space ``points`` (N, P, 3) in metres,
+``normals`` (N, P, 3) and world-space radii ``radius`` (N, P) in metres, no faces (the file has
+``points`` and no ``vertices``). A point set is scored by the same protocol, each figure defined
+for points as follows:
+
+- normal map: the points splatted (:func:`headforge.render.points.splat`, K = 8) as discs of
+  ``fx * radius / depth`` pixels carrying their normals; the composited normals renormalised; a
+  pixel is covered where the splat's accumulated alpha exceeds 0.5. The normal errors,
+  ``head_coverage`` and the paired figures then follow the mesh definitions on those pixels.
+- regions: a point set has no face/head vertex masks, so each scored point takes the GT label of
+  its nearest GT surface point (the label of the closest GT triangle's nearest vertex, found in
+  camera space): *head points* have a full-head label (neck and body excluded), *face points*
+  the face label. All points count, visible or not, as all of a mesh's head region does.
+- one-sided distance: mean (NHA's alignment error) and max over the head / face points of their
+  exact distance to the GT surface, on at most ``samples`` points (a fixed random subset, the same
+  in every frame), a mean over points rather than over area; ``*_camera_mm`` in camera space,
+  the others after the rigid ICP alignment of the face points to the GT face samples (the mesh
+  protocol's alignment with the points as its source), ``hausdorff_full_outer_mm`` aligned to the
+  GT's outer surface.
+- normal consistency: as for meshes, mean ``|cos|`` between nearest neighbours, both directions,
+  of the aligned head points (at most 4000, with their normals turned by the alignment) and the
+  GT surface samples closest to them (with the GT face normals). ``|cos|`` ignores orientation:
+  a point set with every normal flipped keeps its consistency; the normal error catches it.
 """
 
 from __future__ import annotations
@@ -41,17 +64,29 @@ from safetensors.numpy import load_file
 
 from headforge.errors import HeadforgeError
 from headforge.paths import make_folder
-from headforge.metrics.geometry import normal_angle_error, normal_consistency, one_sided_hausdorff
+from headforge.metrics.geometry import normal_angle_error, normal_consistency, one_sided_hausdorff, points_to_mesh
 
 
 @dataclass
 class PredictedGeometry:
+    """A mesh (``faces`` set) or a point set (``faces`` None; ``vertices`` are the points)."""
+
     frames: np.ndarray  # (N,) frame indices
-    vertices: np.ndarray  # (N, V, 3) camera space, metres
-    faces: np.ndarray  # (F, 3)
-    face_vertices: np.ndarray  # (V,) bool
-    head_vertices: np.ndarray  # (V,) bool: the full head (neck excluded)
+    vertices: np.ndarray  # (N, V, 3) camera space, metres: mesh vertices or points
+    faces: np.ndarray | None  # (F, 3); None for a point set
+    face_vertices: np.ndarray | None  # (V,) bool; None for a point set (regions from the GT labels)
+    head_vertices: np.ndarray | None  # (V,) bool: the full head (neck excluded); None for a point set
     source: str
+    normals: np.ndarray | None = None  # (N, V, 3) unit point normals of a point set
+    radius: np.ndarray | None = None  # (N, V) world-space point radii (metres) of a point set
+
+    @property
+    def is_points(self) -> bool:
+        return self.faces is None
+
+    @property
+    def kind(self) -> str:
+        return "points" if self.is_points else "mesh"
 
 
 def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeometry:
@@ -87,7 +122,12 @@ def exported_geometry(folder: str | Path) -> PredictedGeometry:
     path = Path(folder) / "geometry.safetensors"
     if not path.is_file():
         raise HeadforgeError(f"{folder} has neither tracking.safetensors nor geometry.safetensors")
-    g = _load_arrays(path, ("frames", "vertices", "faces", "face_vertices", "head_vertices"))
+    arrays = _load_arrays(path, ("frames",))
+    if "points" in arrays and "vertices" not in arrays:
+        return _point_geometry(path, arrays, str(folder))
+    if "vertices" not in arrays:
+        raise HeadforgeError(f"{path} lacks 'vertices' (a mesh) or 'points' (a point set)")
+    g = _require(path, arrays, ("vertices", "faces", "face_vertices", "head_vertices"))
     N, V = len(g["frames"]), g["vertices"].shape[1] if g["vertices"].ndim == 3 else -1
     if g["vertices"].shape != (N, V, 3) or g["faces"].ndim != 2 or g["faces"].shape[1:] != (3,):
         raise HeadforgeError(f"{path}: vertices {g['vertices'].shape} and faces {g['faces'].shape} are not "
@@ -107,10 +147,41 @@ def _load_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     except Exception as exc:  # SafetensorError, OSError, ...
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise HeadforgeError(f"{path} is unreadable (truncated or not safetensors: {reason})") from None
+    return _require(path, arrays, keys)
+
+
+def _require(path: Path, arrays: dict[str, np.ndarray], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     missing = [key for key in keys if key not in arrays]
     if missing:
         raise HeadforgeError(f"{path} lacks {', '.join(repr(k) for k in missing)}")
     return arrays
+
+
+POINT_KEYS = ("frames", "points", "normals", "radius")
+
+
+def _point_geometry(path: Path, arrays: dict[str, np.ndarray], source: str) -> PredictedGeometry:
+    """A point-set prediction from ``geometry.safetensors``'s arrays, its shapes and values checked."""
+    g = _require(path, arrays, POINT_KEYS)
+    frames, points, normals, radius = (g[k] for k in POINT_KEYS)
+    N = len(frames) if frames.ndim == 1 else -1
+    P = points.shape[1] if points.ndim == 3 else -1
+    if (frames.ndim != 1 or points.shape != (N, P, 3) or P < 1 or normals.shape != (N, P, 3)
+            or radius.shape != (N, P)):
+        raise HeadforgeError(f"{path}: frames {frames.shape}, points {points.shape}, normals {normals.shape} and "
+                             f"radius {radius.shape} are not (T,), (T, P, 3), (T, P, 3) and (T, P) with P >= 1")
+    if not np.issubdtype(frames.dtype, np.integer):
+        raise HeadforgeError(f"{path}: frames must be integer frame indices, got {frames.dtype}")
+    points, normals, radius = (np.asarray(a, np.float32) for a in (points, normals, radius))
+    if not (np.isfinite(points).all() and np.isfinite(normals).all() and np.isfinite(radius).all()):
+        raise HeadforgeError(f"{path}: points, normals and radius must be finite")
+    if (radius <= 0).any():
+        raise HeadforgeError(f"{path}: radius must be positive (metres), min {float(radius.min()):g}")
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    if (length < 1e-6).any():
+        raise HeadforgeError(f"{path}: {int((length < 1e-6).sum())} normals have zero length")
+    return PredictedGeometry(frames.astype(np.int64), points, None, None, None, source,
+                             normals=normals / length, radius=radius)
 
 
 SUBJECT_KEYS = ("train_frames", "intrinsics", "resolution", "labels", "head_labels", "subject")
@@ -158,7 +229,8 @@ def prediction_rows(prediction: PredictedGeometry, frames: np.ndarray, source: P
 
 
 def load_prediction(pred: Path, frames: np.ndarray) -> PredictedGeometry:
-    """A tracked dataset's head model at ``frames``, or a folder's exported geometry."""
+    """A tracked dataset's head model at ``frames``, or a folder's exported geometry (a mesh or
+    a point set)."""
     return tracked_geometry(pred, frames) if (pred / "tracking.safetensors").is_file() else exported_geometry(pred)
 
 
@@ -190,33 +262,93 @@ def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resol
     return torch.where(frags.mask[..., None], n, torch.zeros(3))[0].numpy()
 
 
+def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K: np.ndarray,
+                  resolution: int, k: int = 8) -> np.ndarray:
+    """(R, R, 3) camera-space unit normals of a camera-space point set (P, 3) with normals (P, 3)
+    and world radii (P,) metres, zero where empty: discs of ``fx * radius / depth`` pixels,
+    the ``k`` nearest in depth composited front to back, renormalised, kept where the
+    accumulated alpha exceeds 0.5 (the point-set counterpart of :func:`render_normals`)."""
+    from headforge.render.camera import Cameras
+    from headforge.render.points import splat
+
+    p = torch.from_numpy(np.asarray(points, np.float32))[None]
+    n = torch.from_numpy(np.asarray(normals, np.float32))[None]
+    r_px = float(K[0, 0]) * torch.from_numpy(np.asarray(radius, np.float32))[None] / p[..., 2].clamp(min=1e-3)
+    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    image = splat(cams, p, n, r_px, K=k)
+    out = torch.nn.functional.normalize(image.features, dim=-1)
+    return torch.where(image.mask[..., None] > 0.5, out, torch.zeros(3))[0].numpy()
+
+
+def prediction_normals(prediction: PredictedGeometry, row: int, K: np.ndarray, resolution: int) -> np.ndarray:
+    """(R, R, 3) normal map of ``prediction``'s row ``row``: rasterized for a mesh, splatted for
+    a point set; zero where it does not cover."""
+    if prediction.is_points:
+        return splat_normals(prediction.vertices[row], prediction.normals[row], prediction.radius[row], K, resolution)
+    return render_normals(prediction.vertices[row], prediction.faces, K, resolution)
+
+
+def _icp_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                 gt_face_vertices: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid ICP transform (point-to-point) taking the points ``source`` onto dense
+    samples of the GT face surface."""
+    gt_face = trimesh.Trimesh(gt_verts, gt_faces[gt_face_vertices[gt_faces].all(1)], process=False)
+    target, _ = trimesh.sample.sample_surface(gt_face, 30_000, seed=1)
+    matrix, _, _ = trimesh.registration.icp(np.asarray(source, np.float64), target, initial=np.eye(4),
+                                            max_iterations=40, scale=False)
+    return matrix
+
+
 def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                 gt_face_vertices: np.ndarray) -> np.ndarray:
     """``verts`` moved by the rigid ICP transform that aligns the predicted face surface to the
     GT face surface (point-to-point on dense samples)."""
-    gt_face = trimesh.Trimesh(gt_verts, gt_faces[gt_face_vertices[gt_faces].all(1)], process=False)
-    target, _ = trimesh.sample.sample_surface(gt_face, 30_000, seed=1)
     source, _ = trimesh.sample.sample_surface(trimesh.Trimesh(verts, pred_face_faces, process=False), 5000, seed=2)
-    matrix, _, _ = trimesh.registration.icp(source, target, initial=np.eye(4), max_iterations=40, scale=False)
+    matrix = _icp_to_face(source, gt_verts, gt_faces, gt_face_vertices)
     return verts @ matrix[:3, :3].T + matrix[:3, 3]
 
 
+def align_face_points(face_points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                      gt_face_vertices: np.ndarray) -> np.ndarray:
+    """(4, 4) the rigid ICP transform that aligns a point set's face points (at most 5000 of them,
+    a fixed random subset) to the GT face surface: :func:`align_face` with the points as its source."""
+    if len(face_points) > 5000:
+        face_points = face_points[np.random.default_rng(2).choice(len(face_points), 5000, replace=False)]
+    return _icp_to_face(face_points, gt_verts, gt_faces, gt_face_vertices)
+
+
+def gt_point_labels(points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                    gt_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's closest GT surface point (P, 3), its distance (P,), the closest triangle (P,)
+    and the GT label there (P,): the label of that triangle's vertex nearest the closest point."""
+    mesh = trimesh.Trimesh(gt_verts, gt_faces, process=False)
+    closest, distance, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
+    corners = gt_faces[tri]
+    nearest = np.linalg.norm(gt_verts[corners] - closest[:, None], axis=-1).argmin(1)
+    return closest, distance, tri, gt_labels[corners[np.arange(len(tri)), nearest]]
+
+
 def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices: np.ndarray,
-                    pred_faces: np.ndarray, K: np.ndarray, resolution: int,
-                    yaws_deg: tuple[float, ...] = (0.0, 60.0, 90.0, 150.0)) -> np.ndarray:
+                    pred_faces: np.ndarray | None, K: np.ndarray, resolution: int,
+                    yaws_deg: tuple[float, ...] = (0.0, 60.0, 90.0, 150.0), pred_normals: np.ndarray | None = None,
+                    pred_radius: np.ndarray | None = None) -> np.ndarray:
     """(2R, len(yaws) R, 3) normal-map picture in [0, 1]: the GT mesh (top row) and the
     prediction (bottom row), both camera space in metres, turned by the same ``yaws_deg`` about
     the camera's vertical axis through the GT mesh's centroid. The frontal error map shows only
-    what the camera saw; these views show the top and back, which a monocular clip rarely does."""
+    what the camera saw; these views show the top and back, which a monocular clip rarely does.
+    A point-set prediction: ``pred_faces`` None, its ``pred_normals`` and ``pred_radius`` given."""
     pivot = np.asarray(gt_vertices, np.float64).mean(0)
     rows = []
-    for verts, faces in ((gt_vertices, gt_faces), (pred_vertices, pred_faces)):
+    for verts, faces, normals in ((gt_vertices, gt_faces, None), (pred_vertices, pred_faces, pred_normals)):
         centred = np.asarray(verts, np.float64) - pivot
         tiles = []
         for yaw in np.radians(yaws_deg):
             c, s = np.cos(yaw), np.sin(yaw)
             R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-            n = render_normals(centred @ R.T + pivot, faces, K, resolution)
+            if faces is None:
+                n = splat_normals(centred @ R.T + pivot, normals @ R.T, pred_radius, K, resolution)
+            else:
+                n = render_normals(centred @ R.T + pivot, faces, K, resolution)
             tiles.append(np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, 0.5 * (n + 1), 0.5))
         rows.append(np.concatenate(tiles, 1))
     return np.concatenate(rows, 0)
@@ -284,7 +416,7 @@ def split_rows(gt: dict, info: dict, subject: Path, split: str, every: int) -> t
 def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | Path, split: str = "val",
                         every: int = 1) -> dict:
     """Normal angle error (degrees) of ``pred`` and of ``reference`` (each a tracked dataset or
-    exported geometry, as for :func:`evaluate_geometry`) on the same pixels: the GT full-head
+    exported geometry, a mesh or a point set, as for :func:`evaluate_geometry`) on the same pixels: the GT full-head
     (face) pixels that *both* predictions cover, per GT frame of ``split``, then the mean over
     frames. :func:`evaluate_geometry` charges each prediction only on the pixels it covers
     itself, so a bald head model that leaves the hair uncovered is scored on the skin alone while
@@ -292,8 +424,9 @@ def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | 
 
     Returns ``{"frames": N, "mean": {...}, "per_frame": [...]}`` with ``normal_error_head_deg``,
     ``normal_error_face_deg``, ``reference_normal_error_head_deg``,
-    ``reference_normal_error_face_deg`` and ``common_coverage`` (fraction of the GT full-head
-    pixels both cover)."""
+    ``reference_normal_error_face_deg``, ``common_coverage`` (fraction of the GT full-head
+    pixels both cover) and ``coverage`` / ``reference_coverage`` (the fraction each covers: its
+    ``head_coverage``)."""
     subject = Path(subject)
     gt, info = load_subject_gt(subject)
     rows, _ = split_rows(gt, info, subject, split, every)
@@ -306,12 +439,14 @@ def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | 
     for j, f in enumerate(frames):
         gt_n, labels = read_gt_maps(subject, int(f), res)
         gt_head = np.isin(labels, np.array(info["head_labels"]))
-        normals = {key: render_normals(p.vertices[lookups[key][j]], p.faces, K, res) for key, p in predictions.items()}
+        normals = {key: prediction_normals(p, lookups[key][j], K, res) for key, p in predictions.items()}
         common = gt_head & np.logical_and.reduce([_rendered(n) for n in normals.values()])
         face = common & (labels == info["labels"]["face"])
         if not face.any():
             raise HeadforgeError(f"frame {int(f)}: the two predictions cover none of the ground-truth face in common")
         row = {"frame": int(f), "common_coverage": float(common.sum() / gt_head.sum())}
+        for key, n in normals.items():
+            row[f"{key}coverage"] = float((_rendered(n) & gt_head).sum() / gt_head.sum())
         for key, n in normals.items():
             row[f"{key}normal_error_head_deg"], row[f"{key}normal_error_face_deg"] = _normal_errors(n, gt_n, common, face)
         per_frame.append(row)
@@ -322,7 +457,7 @@ def paired_normal_error(pred: str | Path, reference: str | Path, subject: str | 
 
 def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: str = "val",
                           every: int = 1) -> dict[str, dict[str, float]]:
-    """The full-head normal error of ``pred`` (a tracked dataset or exported geometry, as for
+    """The full-head normal error of ``pred`` (a tracked dataset or exported geometry, mesh or points, as for
     :func:`evaluate_geometry`; None scores the GT meshes themselves, the floor the renderer and
     the 8-bit normal maps leave) split by GT label, the pixels pooled over every ``every``-th GT
     frame of ``split``. Per label name of the GT's full head: ``deg`` (mean angle error on the
@@ -335,17 +470,17 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
     rows, _ = split_rows(gt, info, subject, split, every)
     frames = gt["frames"][rows]
     if pred is None:
-        vertices, faces, lookup = gt["vertices"], gt["faces"], rows
+        prediction = PredictedGeometry(gt["frames"], gt["vertices"], gt["faces"], None, None, "ground truth")
+        lookup = rows
     else:
         prediction = load_prediction(Path(pred), frames)
-        vertices, faces = prediction.vertices, prediction.faces
         lookup = prediction_rows(prediction, frames, Path(pred))
     K, res = np.asarray(info["intrinsics"]), int(info["resolution"])
     names = {value: name for name, value in info["labels"].items()}
     sums = {label: np.zeros(3) for label in info["head_labels"]}  # error sum, covered px, GT px
     for j, frame in enumerate(frames):
         gt_n, labels = read_gt_maps(subject, int(frame), res)
-        pred_n = render_normals(vertices[lookup[j]], faces, K, res)
+        pred_n = prediction_normals(prediction, lookup[j], K, res)
         covered = _rendered(pred_n)
         err = _angle_map_deg(pred_n, gt_n)
         for label in sums:
@@ -357,9 +492,68 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
                            "share": float(s[1] / total)} for label, s in sums.items()}
 
 
+def _mesh_distances(prediction: PredictedGeometry, verts: np.ndarray, gv: np.ndarray, gf: np.ndarray,
+                    gt_labels: np.ndarray, labels_face: int, outer: np.ndarray, samples: int,
+                    face_sel: np.ndarray, head_sel: np.ndarray) -> tuple[dict, np.ndarray]:
+    """A mesh prediction's distance figures (mm) and normal consistency on one frame, and its
+    aligned vertices."""
+    faces = prediction.faces
+    cam_full = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=head_sel)
+    cam_face = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=face_sel)
+    aligned = align_face(verts, faces[face_sel], gv, gf, gt_labels == labels_face)
+    full = one_sided_hausdorff(aligned, faces, gv, gf, samples=samples, region_mask=head_sel)
+    face = one_sided_hausdorff(aligned, faces, gv, gf, samples=samples, region_mask=face_sel)
+    full_outer = one_sided_hausdorff(aligned, faces, gv, gf[outer], samples=samples, region_mask=head_sel)
+    pm = trimesh.Trimesh(aligned, faces[head_sel], process=False)
+    pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
+    gm = trimesh.Trimesh(gv, gf, process=False)
+    closest, _, gfid = trimesh.proximity.closest_point(gm, pts)
+    nc = normal_consistency(pts, pm.face_normals[fid], closest, gm.face_normals[gfid])
+    return _distance_row(full, face, cam_full, cam_face, full_outer, nc), aligned
+
+
+def _stats(d: np.ndarray) -> dict:
+    return {"mean": float(d.mean()), "max": float(d.max())}
+
+
+def _distance_row(full: dict, face: dict, cam_full: dict, cam_face: dict, full_outer: dict, nc: float) -> dict:
+    return {"hausdorff_full_mm": 1000 * full["mean"], "hausdorff_face_mm": 1000 * face["mean"],
+            "hausdorff_full_max_mm": 1000 * full["max"], "hausdorff_face_max_mm": 1000 * face["max"],
+            "hausdorff_full_camera_mm": 1000 * cam_full["mean"], "hausdorff_face_camera_mm": 1000 * cam_face["mean"],
+            "normal_consistency": nc, "hausdorff_full_outer_mm": 1000 * full_outer["mean"]}
+
+
+def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray, gv: np.ndarray, gf: np.ndarray,
+                     gt_labels: np.ndarray, head_labels: np.ndarray, labels_face: int, outer: np.ndarray,
+                     frame: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A point set's distance figures (mm) and normal consistency on one frame (the definitions
+    of the module docstring), and its aligned points and normals."""
+    scored = points[subset]
+    _, distance, _, label = gt_point_labels(scored, gv, gf, gt_labels)
+    head = np.isin(label, head_labels)
+    face = head & (label == labels_face)
+    if not face.any():
+        raise HeadforgeError(f"frame {frame}: none of the prediction's points is nearest the ground-truth face")
+    matrix = align_face_points(scored[face], gv, gf, gt_labels == labels_face)
+    R, t = matrix[:3, :3], matrix[:3, 3]
+    aligned, aligned_n = points @ R.T + t, normals @ R.T
+    head_pts = aligned[subset[head]]
+    d_aligned = points_to_mesh(head_pts, gv, gf)
+    d_outer = points_to_mesh(head_pts, gv, gf[outer])
+    nc_ids = subset[head][:4000]  # the subset is a random permutation: its first head points are a random draw
+    gm = trimesh.Trimesh(gv, gf, process=False)
+    closest, _, gfid = trimesh.proximity.closest_point(gm, aligned[nc_ids].astype(np.float64))
+    nc = normal_consistency(aligned[nc_ids], aligned_n[nc_ids], closest, gm.face_normals[gfid])
+    row = _distance_row(_stats(d_aligned), _stats(d_aligned[face[head]]), _stats(distance[head]),
+                        _stats(distance[face]), _stats(d_outer), nc)
+    return row | {"head_points": int(head.sum()), "face_points": int(face.sum())}, aligned, aligned_n
+
+
 def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val", samples: int = 10_000,
                       every: int = 1) -> dict:
-    """Metrics of ``pred`` (tracked dataset or exported geometry) against ``subject``'s gt/."""
+    """Metrics of ``pred`` (tracked dataset or exported geometry, a mesh or a point set) against
+    ``subject``'s gt/ (the definitions of the module docstring). ``samples``: area samples of a
+    mesh, or scored points of a point set, per distance figure and frame."""
     subject, pred = Path(subject), Path(pred)
     gt, info = load_subject_gt(subject)
     rows, available = split_rows(gt, info, subject, split, every)
@@ -370,15 +564,19 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     res = int(info["resolution"])
     labels_face = info["labels"]["face"]
     head_labels = np.array(info["head_labels"])
-    face_sel = _faces_in(prediction.faces, prediction.face_vertices)
-    head_sel = _faces_in(prediction.faces, prediction.head_vertices)
+    if prediction.is_points:
+        P = prediction.vertices.shape[1]
+        subset = np.random.default_rng(0).permutation(P)[:samples]
+    else:
+        face_sel = _faces_in(prediction.faces, prediction.face_vertices)
+        head_sel = _faces_in(prediction.faces, prediction.head_vertices)
     # a rest-like first frame decides which GT faces are outer (the hair rides on the head bone)
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
     per_frame, error_maps, views = [], [], None
     for row, f, i in zip(rows, frames, pred_rows):
         verts = prediction.vertices[i]
         gt_n, labels = read_gt_maps(subject, int(f), res)
-        pred_n = render_normals(verts, prediction.faces, K, res)
+        pred_n = prediction_normals(prediction, i, K, res)
         covered = _rendered(pred_n) & (labels > 0)
         face_px = covered & (labels == labels_face)
         gt_head_px = np.isin(labels, head_labels)
@@ -387,34 +585,26 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
             raise HeadforgeError(f"frame {int(f)}: the prediction covers none of the ground-truth face")
         nae_head, nae_face = _normal_errors(pred_n, gt_n, head_px, face_px)
         gv, gf = gt["vertices"][row], gt["faces"]
-        cam_full = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
-        cam_face = one_sided_hausdorff(verts, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
-        aligned = align_face(verts, prediction.faces[face_sel], gv, gf, gt["labels"] == labels_face)
-        full = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=head_sel)
-        face = one_sided_hausdorff(aligned, prediction.faces, gv, gf, samples=samples, region_mask=face_sel)
-        full_outer = one_sided_hausdorff(aligned, prediction.faces, gv, gf[outer], samples=samples, region_mask=head_sel)
-        verts = aligned
-        if views is None:
-            views = turntable_views(gv, gf, aligned, prediction.faces[head_sel], K, res)
-        pm = trimesh.Trimesh(verts, prediction.faces[head_sel], process=False)
-        pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
-        gm = trimesh.Trimesh(gv, gf, process=False)
-        closest, _, gfid = trimesh.proximity.closest_point(gm, pts)
-        nc = normal_consistency(pts, pm.face_normals[fid], closest, gm.face_normals[gfid])
+        if prediction.is_points:
+            scores, aligned, aligned_n = _point_distances(verts, prediction.normals[i], subset, gv, gf, gt["labels"],
+                                                          head_labels, labels_face, outer, int(f))
+            if views is None:
+                views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
+                                        pred_radius=prediction.radius[i])
+        else:
+            scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, samples,
+                                              face_sel, head_sel)
+            if views is None:
+                views = turntable_views(gv, gf, aligned, prediction.faces[head_sel], K, res)
         per_frame.append({"frame": int(f), "normal_error_face_deg": nae_face, "normal_error_head_deg": nae_head,
-                          "hausdorff_full_mm": 1000 * full["mean"], "hausdorff_face_mm": 1000 * face["mean"],
-                          "hausdorff_full_max_mm": 1000 * full["max"], "hausdorff_face_max_mm": 1000 * face["max"],
-                          "hausdorff_full_camera_mm": 1000 * cam_full["mean"],
-                          "hausdorff_face_camera_mm": 1000 * cam_face["mean"], "normal_consistency": nc,
-                          "hausdorff_full_outer_mm": 1000 * full_outer["mean"],
-                          "head_coverage": float(head_px.sum() / gt_head_px.sum())})
+                          **scores, "head_coverage": float(head_px.sum() / gt_head_px.sum())})
         if len(error_maps) < 3:
             err = np.where(head_px, _angle_map_deg(pred_n, gt_n) / 45.0, 0)
             error_maps.append(np.concatenate([0.5 * (gt_n + 1), 0.5 * (pred_n + 1), np.repeat(err[..., None], 3, -1)], 1))
     keys = [k for k in per_frame[0] if k != "frame"]
     mean = {k: float(np.mean([r[k] for r in per_frame])) for k in keys}
-    return {"prediction": prediction.source, "subject": str(subject), "split": split, "frames": len(per_frame),
-            "frames_available": available, "mean": mean, "per_frame": per_frame,
+    return {"prediction": prediction.source, "kind": prediction.kind, "subject": str(subject), "split": split,
+            "frames": len(per_frame), "frames_available": available, "mean": mean, "per_frame": per_frame,
             "error_maps": error_maps, "views": views, "hair": info["subject"]["hair_style"]}
 
 
@@ -425,7 +615,7 @@ def write_geometry_report(result: dict, out_dir: Path) -> None:
     maps = result.pop("error_maps")
     views = result.pop("views", None)
     (out_dir / "metrics.json").write_text(json.dumps(result, indent=1))
-    lines = [f"Geometry of {result['prediction']} against {result['subject']} ({result['split']} split): "
+    lines = [f"Geometry of {result['prediction']} ({result.get('kind', 'mesh')}) against {result['subject']} ({result['split']} split): "
              f"{result['frames']} of {result['frames_available']} ground-truth frames.", "",
              "| metric | mean |", "| --- | --- |"]
     lines += [f"| {k} | {v:.3f} |" for k, v in result["mean"].items()]

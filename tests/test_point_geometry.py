@@ -1,0 +1,243 @@
+"""Point-set predictions in the synthetic geometry benchmark (``headforge eval PRED SUBJECT`` for
+point avatars): the format, its checks, the engine's export and the protocol's figures on point
+sets sampled from the ground truth itself."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from safetensors.numpy import save_file
+
+from headforge.errors import HeadforgeError
+
+
+def _sample_gt_head(gt: dict, info: dict, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """``n`` area-uniform samples of the GT head's outer surface (neck, body, the scalp under the
+    hair and the hair's inner shell left out), the same surface points in every GT frame:
+    points (T, n, 3), their smooth normals (the interpolated vertex normals the GT normal maps
+    show), the sample spacing sqrt(area / n) in metres, and the head faces sampled."""
+    from headforge.geometry import vertex_normals
+    from headforge.metrics.benchmark import outer_surface_faces
+
+    V, F, L = gt["vertices"], gt["faces"], gt["labels"]
+    head = np.isin(L, info["head_labels"])
+    outer = outer_surface_faces(V[0], F, L, info["labels"]["hair"])
+    faces = F[head[F].all(1) & outer]
+    tri = V[0][faces].astype(np.float64)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    fid = rng.choice(len(faces), n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    bary = np.stack([1 - u - v, u, v], 1)[None, :, :, None]
+    vn = vertex_normals(torch.from_numpy(V.astype(np.float32)), torch.from_numpy(F.astype(np.int64))).numpy()
+    points = (V[:, faces[fid]] * bary).sum(2)
+    normals = (vn[:, faces[fid]] * bary).sum(2)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    # contiguous copies: safetensors' numpy writer would write these strided sums scrambled
+    return (np.ascontiguousarray(points, np.float32), np.ascontiguousarray(normals, np.float32),
+            float(np.sqrt(area.sum() / n)), faces)
+
+
+def _write_points(folder, frames, points, normals, radius) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file({"frames": frames.astype(np.int64), "points": np.ascontiguousarray(points, np.float32),
+               "normals": np.ascontiguousarray(normals, np.float32), "radius": np.ascontiguousarray(radius, np.float32)},
+              str(folder / "geometry.safetensors"))
+
+
+@pytest.fixture(scope="module")
+def point_sets(synth_bench, tmp_path_factory):
+    """The synth subject, how to score its first val GT frame alone (``every``), and prediction
+    folders: ``clean`` (40k points on the GT head, radius 1.5 x spacing), ``flipped`` (the same,
+    every normal negated), ``noisy`` (normals + N(0, 0.5) noise, renormalised) and ``mesh`` (the
+    GT head faces themselves, as an exported mesh)."""
+    from headforge.metrics.benchmark import load_subject_gt, split_rows
+
+    out, _, _ = synth_bench
+    subject = out / "subject_00"
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", 1)
+    points, normals, spacing, faces = _sample_gt_head(gt, info, 40_000)
+    radius = np.full(points.shape[:2], 1.5 * spacing, np.float32)
+    root = tmp_path_factory.mktemp("point_sets")
+    frames = gt["frames"]
+    _write_points(root / "clean", frames, points, normals, radius)
+    _write_points(root / "flipped", frames, points, -normals, radius)
+    noisy = normals + np.random.default_rng(1).normal(0, 0.5, normals.shape).astype(np.float32)
+    _write_points(root / "noisy", frames, points, noisy / np.linalg.norm(noisy, axis=-1, keepdims=True), radius)
+    (root / "mesh").mkdir()
+    save_file({"frames": frames.astype(np.int64), "vertices": gt["vertices"].astype(np.float32),
+               "faces": faces.astype(np.int64), "face_vertices": gt["labels"] == info["labels"]["face"],
+               "head_vertices": np.isin(gt["labels"], info["head_labels"])}, str(root / "mesh" / "geometry.safetensors"))
+    return {"subject": subject, "every": len(rows), "spacing": spacing, **{k: root / k for k in
+                                                                           ("clean", "flipped", "noisy", "mesh")}}
+
+
+def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets):
+    """Points on the GT head with its normals: on the surface (distances ~0), consistent normals,
+    a small splatted normal error and the coverage of the GT head mesh itself; then the same
+    points with flipped or noisy normals score worse where each should."""
+    from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error
+
+    subject, every = point_sets["subject"], point_sets["every"]
+    result = evaluate_geometry(point_sets["clean"], subject, every=every, samples=2000)
+    assert result["kind"] == "points" and result["frames"] == 1
+    m = result["mean"]
+    assert m["normal_consistency"] > 0.98
+    assert m["hausdorff_full_camera_mm"] < 0.01 and m["hausdorff_face_camera_mm"] < 0.01
+    assert m["hausdorff_full_mm"] < 0.3 and m["hausdorff_face_mm"] < 0.3  # the ICP settles within 0.3 mm
+    assert m["hausdorff_full_outer_mm"] < 0.3  # sampled on the outer surface only
+    assert m["normal_error_face_deg"] < 8 and m["normal_error_head_deg"] < 10
+    assert m["face_points"] > 0.2 * m["head_points"] and m["head_points"] >= 1990  # ~every point is on the head
+    R = int(json.loads((subject / "gt" / "subject.json").read_text())["resolution"])
+    assert result["views"].shape == (2 * R, 4 * R, 3)
+    # the GT head mesh as the reference: the point set covers what it covers
+    pair = paired_normal_error(point_sets["clean"], point_sets["mesh"], subject, every=every)["mean"]
+    assert abs(pair["coverage"] - m["head_coverage"]) < 1e-6
+    assert abs(pair["coverage"] - pair["reference_coverage"]) < 0.02 and pair["reference_coverage"] > 0.95
+    assert pair["common_coverage"] <= min(pair["coverage"], pair["reference_coverage"])
+    assert pair["reference_normal_error_head_deg"] < 1 < pair["normal_error_head_deg"]
+    # flipped normals: the same |cos| consistency and distances, but the normal maps point away
+    flipped = evaluate_geometry(point_sets["flipped"], subject, every=every, samples=2000)["mean"]
+    assert abs(flipped["normal_consistency"] - m["normal_consistency"]) < 1e-6
+    assert flipped["hausdorff_full_camera_mm"] == pytest.approx(m["hausdorff_full_camera_mm"])
+    assert flipped["normal_error_head_deg"] > 150
+    # noisy normals: less consistent and a larger normal error
+    noisy = evaluate_geometry(point_sets["noisy"], subject, every=every, samples=2000)["mean"]
+    assert noisy["normal_consistency"] < m["normal_consistency"] - 0.05
+    assert noisy["normal_error_head_deg"] > m["normal_error_head_deg"] + 5
+
+
+def test_point_and_mesh_predictions_pair_either_way(point_sets, open_head_data, tmp_path):
+    """``--reference`` with a point set on one side and a mesh on the other (the tracked head
+    model, as PointAvatar against a mesh avatar), both ways round; each one's coverage reported."""
+    from typer.testing import CliRunner
+
+    from headforge.cli import app
+    from headforge.metrics.benchmark import paired_normal_error
+
+    subject, every = point_sets["subject"], point_sets["every"]
+    one_way = paired_normal_error(point_sets["clean"], subject, subject, every=every)["mean"]
+    other_way = paired_normal_error(subject, point_sets["clean"], subject, every=every)["mean"]
+    assert one_way["common_coverage"] == pytest.approx(other_way["common_coverage"])
+    assert one_way["coverage"] == pytest.approx(other_way["reference_coverage"])
+    assert one_way["normal_error_head_deg"] == pytest.approx(other_way["reference_normal_error_head_deg"])
+    assert 0.5 < one_way["reference_coverage"] <= 1 and one_way["common_coverage"] <= one_way["coverage"]
+    res = CliRunner().invoke(app, ["eval", str(point_sets["clean"]), str(subject), "--reference", str(subject),
+                                   "--every", str(every), "--json", "-o", str(tmp_path / "eval")])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.output.strip().splitlines()[-1])
+    assert summary["kind"] == "points" and summary["frames"] == 1
+    assert summary["paired_coverage"] == pytest.approx(summary["head_coverage"])
+    assert summary["paired_reference_coverage"] == pytest.approx(one_way["reference_coverage"])
+    assert (tmp_path / "eval" / "views.png").is_file() and (tmp_path / "eval" / "normal_error.png").is_file()
+    assert "(points)" in (tmp_path / "eval" / "metrics.md").read_text()
+
+
+class _PointAvatar:
+    """What export_geometry reads of an avatar: per-frame parameters and ``geometry``."""
+
+    def __init__(self, T: int, P: int, radius_shape: str = "per point"):
+        self.frames = {"translation": torch.zeros(T, 3)}
+        self.P, self.radius_shape = P, radius_shape
+
+    def frame_params(self, rows):
+        return {"rows": rows}
+
+    def geometry(self, params):
+        from headforge.avatars.base import Geometry
+
+        rows = params["rows"].double()
+        B = len(rows)
+        pts = torch.linspace(0, 1, self.P * 3).reshape(1, self.P, 3) + rows[:, None, None]
+        pts = pts.float() + torch.tensor([0.0, 0.0, 1.0])
+        normals = torch.nn.functional.normalize(pts.flip(-1) - 0.3, dim=-1)
+        radius = 1e-3 * (1 + rows[:, None].float()).expand(B, self.P) if self.radius_shape == "per point" \
+            else torch.full((self.P,), 2e-3)
+        # strided views, as a model's outputs may be: the export must still write them correctly
+        return Geometry(pts.transpose(0, 1).contiguous().transpose(0, 1), normals=normals,
+                        radius=radius)
+
+
+@pytest.mark.parametrize("radius_shape", ["per point", "shared (P,)"])
+def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, radius_shape):
+    from safetensors.numpy import load_file
+
+    from headforge.avatars.engine import export_geometry
+    from headforge.metrics.benchmark import exported_geometry
+
+    subject = point_sets["subject"]
+    gt_frames = load_file(str(subject / "gt" / "geometry.safetensors"))["frames"]
+    avatar = _PointAvatar(T=int(gt_frames.max()), P=50, radius_shape=radius_shape)  # the last GT frame is beyond T
+    export_geometry(avatar, subject, tmp_path / "geometry.safetensors")
+    assert not list(tmp_path.glob("*.tmp.*"))
+    loaded = exported_geometry(tmp_path)
+    kept = gt_frames[gt_frames < avatar.frames["translation"].shape[0]]
+    assert loaded.is_points and np.array_equal(loaded.frames, kept)
+    want = avatar.geometry(avatar.frame_params(torch.from_numpy(kept)))
+    assert np.allclose(loaded.vertices, want.vertices.numpy())
+    assert np.allclose(loaded.normals, want.normals.numpy(), atol=1e-6)
+    assert loaded.radius.shape == (len(kept), 50)
+    assert np.allclose(loaded.radius, want.radius.expand(len(kept), 50).numpy())
+
+
+def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_sets, tmp_path):
+    from headforge.avatars.base import Geometry
+    from headforge.avatars.engine import export_geometry
+
+    avatar = _PointAvatar(T=4, P=5)
+    avatar.geometry = lambda params: Geometry(torch.zeros(len(params["rows"]), 5, 3))
+    with pytest.raises(HeadforgeError, match="normals and radius"):
+        export_geometry(avatar, point_sets["subject"], tmp_path / "geometry.safetensors")
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("no radius", "lacks 'radius'"),
+    ("no points or vertices", "lacks 'vertices' (a mesh) or 'points' (a point set)"),
+    ("normals (T, P, 2)", "are not (T,), (T, P, 3), (T, P, 3) and (T, P)"),
+    ("radius (T, P + 1)", "are not (T,), (T, P, 3), (T, P, 3) and (T, P)"),
+    ("one frame too few", "are not (T,), (T, P, 3), (T, P, 3) and (T, P)"),
+    ("no points", "P >= 1"),
+    ("nan point", "must be finite"),
+    ("zero normal", "zero length"),
+    ("negative radius", "radius must be positive"),
+    ("float frames", "integer frame indices"),
+])
+def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
+    from headforge.metrics.benchmark import load_prediction
+
+    T, P = 3, 4
+    arrays = {"frames": np.arange(T), "points": np.ones((T, P, 3), np.float32),
+              "normals": np.ones((T, P, 3), np.float32), "radius": np.full((T, P), 1e-3, np.float32)}
+    if damage == "no radius":
+        del arrays["radius"]
+    elif damage == "no points or vertices":
+        del arrays["points"]
+    elif damage == "normals (T, P, 2)":
+        arrays["normals"] = arrays["normals"][..., :2].copy()
+    elif damage == "radius (T, P + 1)":
+        arrays["radius"] = np.full((T, P + 1), 1e-3, np.float32)
+    elif damage == "one frame too few":
+        arrays["frames"] = np.arange(T - 1)
+    elif damage == "no points":
+        arrays |= {"points": np.ones((T, 0, 3), np.float32), "normals": np.ones((T, 0, 3), np.float32),
+                   "radius": np.ones((T, 0), np.float32)}
+    elif damage == "nan point":
+        arrays["points"][1, 2, 0] = np.nan
+    elif damage == "zero normal":
+        arrays["normals"][0, 0] = 0
+    elif damage == "negative radius":
+        arrays["radius"][2, 3] = -1e-3
+    elif damage == "float frames":
+        arrays["frames"] = np.arange(T, dtype=np.float32)
+    save_file(arrays, str(tmp_path / "geometry.safetensors"))
+    with pytest.raises(HeadforgeError) as err:
+        load_prediction(tmp_path, np.arange(T))
+    text = str(err.value)
+    assert message in text and "\n" not in text and str(tmp_path / "geometry.safetensors") in text
