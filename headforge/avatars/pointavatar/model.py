@@ -138,9 +138,12 @@ class PointAvatarModel(Avatar):
     def canonical(self, training: bool) -> Canonical:
         """The frame-independent outputs (see :class:`Canonical`); cached between calls while
         no parameter changed and gradients are off (rendering a sequence)."""
-        key = (self.n_points, self.jacobian_normals,
-               tuple(p._version for n, p in self.named_parameters() if not n.startswith("frames.")))
-        if not training and not torch.is_grad_enabled() and self._cache is not None and self._cache[0] == key:
+        own = [p for n, p in self.named_parameters() if not n.startswith("frames.")]
+        # cacheable when nothing upstream needs gradients: rendering, and per-frame fitting, where
+        # only the frame parameters train (the canonical state is then the same every step)
+        frozen = not training and not (torch.is_grad_enabled() and any(p.requires_grad for p in own))
+        key = (self.n_points, self.jacobian_normals, tuple(p._version for p in own))
+        if frozen and self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         q = self.points
         # the SDF sees the points' positions, not the reverse: the data term must not drag points
@@ -157,7 +160,9 @@ class PointAvatarModel(Avatar):
             h, W, O = self.deformer(q)
             tangents = None
         state = Canonical(q, sdf, grad, albedo, h, W, O, tangents)
-        if not training and not torch.is_grad_enabled():
+        if frozen:
+            state = Canonical(*(t.detach() if isinstance(t, torch.Tensor) else
+                                tuple(x.detach() for x in t) if t is not None else None for t in vars(state).values()))
             self._cache = (key, state)
         return state
 
