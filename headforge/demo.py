@@ -1,7 +1,8 @@
 """The main job end to end on the embedded default (``headforge demo``): synth one small subject
-(or track a video) -> fit a Neural Head Avatar (quick preset) -> render held-out frames, a
-novel-view orbit, the exported mesh and the head model turntable -> evaluate (the scoring
-protocol; geometry against the ground truth for the synthetic subject). Writes a report folder
+(or track a video) -> fit an avatar (NHA by default, or PointAvatar; quick preset) -> render
+held-out frames, a novel-view orbit (PointAvatar: also relit), the export (mesh / point cloud)
+and the head model turntable -> evaluate (the scoring protocol; geometry against the ground
+truth for the synthetic subject). Writes a report folder
 (PNGs, MP4s, metrics.json, metrics.md) under a ``.partial`` name, renamed when complete; an
 interrupted demo resumes its finished steps."""
 
@@ -16,8 +17,25 @@ GEOMETRY_FIGURES = ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_fac
                     "head_coverage")
 
 
-def demo_config(iterations: int):
-    """The quick NHA preset scaled to ``iterations``, with the demo's shorter per-frame fitting."""
+DEFAULT_ITERATIONS = {"nha": 900, "pointavatar": 1500}
+EXPORT_FORMAT = {"nha": "obj", "pointavatar": "ply"}
+
+
+def demo_config(iterations: int | None, method: str = "nha"):
+    """The method's quick preset scaled to ``iterations`` (default: the method's demo length),
+    with the demo's shorter per-frame fitting."""
+    from headforge.errors import HeadforgeError
+
+    if method not in DEFAULT_ITERATIONS:
+        raise HeadforgeError(f"--method must be one of {', '.join(DEFAULT_ITERATIONS)}, got {method!r}")
+    iterations = DEFAULT_ITERATIONS[method] if iterations is None else iterations
+    if method == "pointavatar":
+        from headforge.avatars.pointavatar.config import PointAvatarConfig
+
+        config = PointAvatarConfig.quick()
+        config.scale_schedule(iterations)
+        config.tto_steps = 30
+        return config
     from headforge.avatars.nha.config import NHAConfig
 
     config = NHAConfig.quick()
@@ -31,11 +49,12 @@ def demo_config(iterations: int):
     return config
 
 
-def run_demo(output: Path, video: Path | None = None, iterations: int = 900, device: str = "auto", log=print,
+def run_demo(output: Path, video: Path | None = None, iterations: int | None = None, device: str = "auto", log=print,
              progress_factory=None, synth_frames: tuple[int, int] = (120, 40), synth_resolution: int = 256,
-             config=None, turntable: tuple[int, int, int] = (60, 256, 100_000)) -> dict:
-    """The demo into ``output``; returns its metrics. ``config`` overrides :func:`demo_config`
-    and ``turntable`` the turntable's (frames, resolution, points) (tests use tiny settings)."""
+             config=None, turntable: tuple[int, int, int] = (60, 256, 100_000), method: str = "nha") -> dict:
+    """The demo of ``method`` into ``output``; returns its metrics. ``config`` overrides
+    :func:`demo_config` and ``turntable`` the turntable's (frames, resolution, points) (tests use
+    tiny settings)."""
     import matplotlib.cbook
 
     from headforge.avatars.engine import fit
@@ -48,7 +67,7 @@ def run_demo(output: Path, video: Path | None = None, iterations: int = 900, dev
     from headforge.head.turntable import write_turntable
     from headforge.render.io import write_mp4, write_png
 
-    config = demo_config(iterations) if config is None else config  # checks --iterations before any work
+    config = demo_config(iterations, method) if config is None else config  # checks --iterations before any work
     target = resolve_device(device)
     start = time.perf_counter()
     tmp = output.with_name(output.name + ".partial")
@@ -73,12 +92,13 @@ def run_demo(output: Path, video: Path | None = None, iterations: int = 900, dev
         dataset = tmp / "track"
     metrics.update({f"track_{k}": v for k, v in json.loads((dataset / "metrics.json").read_text()).items()
                     if k in ("landmark_median_px", "frames_valid", "frames_total")})
-    log(f"2/4 fitting a Neural Head Avatar ({config.total_iters} iterations, quick preset)")
+    title = {"nha": "a Neural Head Avatar", "pointavatar": "a PointAvatar"}[method]
+    log(f"2/4 fitting {title} ({config.total_iters} iterations, quick preset)")
     bar = progress_factory("training", config.total_iters) if progress_factory else None
-    nha = fit("nha", dataset, tmp / "nha", config, log=log, progress=bar, device=target)
-    metrics.update({f"nha_{k}": v for k, v in nha.items() if k not in ("dataset", "method")})
-    log("3/4 rendering: validation frames, a novel-view orbit, the exported mesh, the head model turntable")
-    r = load_run(tmp / "nha")
+    fitted = fit(method, dataset, tmp / method, config, log=log, progress=bar, device=target)
+    metrics.update({f"{method}_{k}": v for k, v in fitted.items() if k not in ("dataset", "method")})
+    log("3/4 rendering: validation frames, a novel-view orbit, the export, the head model turntable")
+    r = load_run(tmp / method)
     K = r.assets.intrinsics(r.config.resolution)
     seq = own_sequence(r.avatar, r.assets, "val")
     T = seq["translation"].shape[0]
@@ -86,7 +106,13 @@ def run_demo(output: Path, video: Path | None = None, iterations: int = 900, dev
               description="avatar, validation frames")
     write_mp4(tmp / "avatar_orbit.mp4", render_sequence(r.avatar, K, r.config.resolution, seq, orbit=True), total=T,
               description="avatar, orbit")
-    r.avatar.export(tmp / "export", "obj", texture_size=256)
+    if getattr(r.avatar, "relightable", False):
+        from headforge.render.shading import parse_light
+
+        write_mp4(tmp / "avatar_relit.mp4", render_sequence(r.avatar, K, r.config.resolution, seq, orbit=True,
+                                                            options={"light": parse_light("rotate:60")}),
+                  total=T, description="avatar, orbit, light turned 60 degrees")
+    r.avatar.export(tmp / "export", EXPORT_FORMAT[method], texture_size=256)
     photo = Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))
     pixels = read_picture(photo)
     fit_photo = fit_image(head, pixels)
@@ -97,13 +123,13 @@ def run_demo(output: Path, video: Path | None = None, iterations: int = 900, dev
         from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error, write_geometry_report
 
         log("4/4 evaluating geometry against the ground truth: tracked head model vs avatar")
-        for name, pred in (("tracked", dataset), ("nha", tmp / "nha")):
+        for name, pred in (("tracked", dataset), (method, tmp / method)):
             result = evaluate_geometry(pred, dataset, samples=5000)
             write_geometry_report(result, tmp / f"eval_{name}")
             for k in GEOMETRY_FIGURES:
                 metrics[f"{name}_{k}"] = round(result["mean"][k], 3)
-        pair = paired_normal_error(tmp / "nha", dataset, dataset)["mean"]  # both on the pixels both cover
-        for name, prefix in (("tracked", "reference_"), ("nha", "")):
+        pair = paired_normal_error(tmp / method, dataset, dataset)["mean"]  # both on the pixels both cover
+        for name, prefix in (("tracked", "reference_"), (method, "")):
             metrics[f"{name}_paired_normal_error_head_deg"] = round(pair[prefix + "normal_error_head_deg"], 3)
     metrics["demo_minutes"] = round((time.perf_counter() - start) / 60, 2)
     (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -131,6 +131,24 @@ def synth_bench(tmp_path_factory, open_head_data):
 
 
 @pytest.fixture
+def tiny_head(monkeypatch):
+    """``load_data("tiny-nha")`` gives the fixed tiny NHA head (:func:`tiny_nha_head_data`)."""
+    import headforge.head
+
+    data = tiny_nha_head_data()
+    original = headforge.head.load_data
+    monkeypatch.setattr(headforge.head, "load_data",
+                        lambda name="open-head", *a, **k: data if name == data.name else original(name, *a, **k))
+    return data
+
+
+@pytest.fixture
+def rendered(tmp_path, tiny_head):
+    """A tiny dataset rendered from the tiny NHA head (:func:`write_rendered_dataset`)."""
+    return write_rendered_dataset(tmp_path / "data", tiny_head)
+
+
+@pytest.fixture
 def interrupt_after():
     """``interrupt_after(n)``: a training progress callback that raises KeyboardInterrupt on its
     n-th call (a run killed after n - 1 iterations)."""

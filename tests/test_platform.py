@@ -17,26 +17,6 @@ sys.path.insert(0, str(Path(__file__).parent / "data"))
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-@pytest.fixture
-def tiny_head(monkeypatch):
-    """``load_data("tiny-nha")`` gives the fixed tiny NHA head (tests/conftest.py)."""
-    import headforge.head
-    from conftest import tiny_nha_head_data
-
-    data = tiny_nha_head_data()
-    original = headforge.head.load_data
-    monkeypatch.setattr(headforge.head, "load_data",
-                        lambda name="open-head", *a, **k: data if name == data.name else original(name, *a, **k))
-    return data
-
-
-@pytest.fixture
-def rendered(tmp_path, tiny_head):
-    from conftest import write_rendered_dataset
-
-    return write_rendered_dataset(tmp_path / "data", tiny_head)
-
-
 def test_nha_on_the_engine_reproduces_the_old_trainers_losses(rendered, tmp_path, monkeypatch):
     """Every energy evaluation of a 50-iteration tiny run (training steps, the per-frame
     alignment, in-training validation and test-time fitting) equals the pre-platform trainer's,

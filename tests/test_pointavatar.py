@@ -16,25 +16,6 @@ from headforge.errors import HeadforgeError
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-@pytest.fixture
-def tiny_head(monkeypatch):
-    import headforge.head
-    from conftest import tiny_nha_head_data
-
-    data = tiny_nha_head_data()
-    original = headforge.head.load_data
-    monkeypatch.setattr(headforge.head, "load_data",
-                        lambda name="open-head", *a, **k: data if name == data.name else original(name, *a, **k))
-    return data
-
-
-@pytest.fixture
-def rendered(tmp_path, tiny_head):
-    from conftest import write_rendered_dataset
-
-    return write_rendered_dataset(tmp_path / "data", tiny_head)
-
-
 def tiny_config(**changes):
     from headforge.avatars.pointavatar.config import PointAvatarConfig
 
@@ -166,3 +147,21 @@ def test_pointavatar_fits_relights_renders_and_exports_through_the_cli(rendered,
     header = (tmp_path / "ply" / "canonical.ply").read_bytes()[:400].decode(errors="ignore")
     assert "property float nx" in header and "property float radius" in header and "property uchar red" in header
     assert any(p.name.startswith("frame_") for p in (tmp_path / "ply").iterdir())
+
+
+def test_the_demo_runs_with_pointavatar_and_scores_its_points_on_the_ground_truth(synth_bench, tmp_path):
+    import shutil
+
+    from headforge.demo import run_demo
+
+    out = tmp_path / "demo"
+    shutil.copytree(synth_bench[0], tmp_path / "demo.partial" / "synth")
+    config = tiny_config(resolution=96, iterations=8, val_every=8, checkpoint_every=8)
+    metrics = run_demo(out, config=config, device="cpu", log=lambda m: None, turntable=(3, 64, 2000),
+                       method="pointavatar")
+    for name in ("avatar_val.mp4", "avatar_orbit.mp4", "avatar_relit.mp4", "export/canonical.ply",
+                 "pointavatar/canonical_points.png", "pointavatar/points.png", "pointavatar/geometry.safetensors",
+                 "eval_pointavatar/metrics.json"):
+        assert (out / name).is_file(), name
+    assert metrics["pointavatar_iterations"] == 8 and metrics["pointavatar_n_points"] > 0
+    assert 0 < metrics["pointavatar_normal_error_head_deg"] < 120 and 0 <= metrics["pointavatar_head_coverage"] <= 1

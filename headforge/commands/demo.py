@@ -13,14 +13,17 @@ from headforge.commands.common import Bars, console, progress
 
 def demo(output: Path = typer.Option(Path("headforge-demo"), "-o", "--output", help="report folder"),
          video: Optional[Path] = typer.Option(None, help="use this video (first 300 frames) instead of a synthetic subject"),
-         iterations: int = typer.Option(900, help="NHA training iterations (the quick preset's schedule, scaled)"),
-         device: str = typer.Option("auto", help="NHA training device: auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
-    """Synth one small subject (or track --video) -> fit a Neural Head Avatar (quick) -> render
-    val frames, a novel-view orbit and the turntable -> evaluate. Writes a report folder."""
+         method: str = typer.Option("nha", help="nha (Neural Head Avatars) or pointavatar"),
+         iterations: Optional[int] = typer.Option(None, help="training iterations (the quick preset's schedule, "
+                                                             "scaled; default nha 900, pointavatar 1500)"),
+         device: str = typer.Option("auto", help="training device: auto (a CUDA GPU when there is one), cpu or cuda[:N]")) -> None:
+    """Synth one small subject (or track --video) -> fit an avatar (quick) -> render val frames,
+    a novel-view orbit and the turntable -> evaluate. Writes a report folder."""
     from headforge.demo import run_demo
 
     with Bars() as bars:
-        metrics = run_demo(output, video, iterations, device, log=progress, progress_factory=bars.factory)
-    console.print(f"report written to {output}/ (metrics.md, avatar_val.mp4, avatar_orbit.mp4, nha/progress.png, "
-                  f"export/avatar.obj, turntable.mp4, ...)")
+        metrics = run_demo(output, video, iterations, device, log=progress, progress_factory=bars.factory, method=method)
+    export = "export/avatar.obj" if method == "nha" else "export/canonical.ply, avatar_relit.mp4"
+    console.print(f"report written to {output}/ (metrics.md, avatar_val.mp4, avatar_orbit.mp4, {method}/progress.png, "
+                  f"{export}, turntable.mp4, ...)")
     print(json.dumps(metrics))

@@ -26,7 +26,7 @@ def make_config(method, preset: str, iterations: Optional[int], resolution: Opti
     return config
 
 
-def fit(method: str = typer.Argument(..., help="avatar method, e.g. nha"),
+def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavatar"),
         dataset: Path = typer.Argument(..., help="a dataset written by headforge track or synth"),
         output: Path = typer.Option(..., "-o", "--output", help="run folder (resumed when it exists)"),
         preset: str = typer.Option("quick", help="quick (CPU) or paper (the paper's sizes, for a GPU)"),
@@ -35,7 +35,8 @@ def fit(method: str = typer.Argument(..., help="avatar method, e.g. nha"),
         device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]"),
         set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE",
                                                  help="override a config field, e.g. --set tex_grid=256 (repeatable)")) -> None:
-    """Train an avatar (nha: Neural Head Avatars -- geometry MLP offsets + neural texture on the tracked head model)."""
+    """Train an avatar (nha: Neural Head Avatars -- geometry MLP offsets + neural texture on the tracked
+    head model; pointavatar: PointAvatar -- a deformable point cloud with albedo x learned shading)."""
     from headforge.avatars import registry
     from headforge.avatars.engine import fit as run_fit
     from headforge.devices import resolve_device

@@ -45,9 +45,11 @@ class PointAvatarConfig(EngineConfig):
     w_rgb: float = 1.0
     w_mask: float = 1.0
     w_ssim: float = 0.0  # a weight-free stand-in for the VGG term (no pretrained weights here)
-    w_flame: float = 10.0  # the authors' code (lbs_weight); the paper's text: 1
-    w_expr: float = 1000.0
-    w_pose: float = 1000.0
+    # the head-model regulariser on mean squared errors (the authors' code): E and P in metres per
+    # unit coefficient, where their 10 x 10 x 100 on FLAME's x4 units is 1.6e5; W (weights) 1
+    w_flame: float = 1.0
+    w_expr: float = 1.6e5
+    w_pose: float = 1.6e5
     w_weights: float = 1.0
     w_sdf: float = 1.0
     w_eikonal: float = 0.1

@@ -34,15 +34,16 @@ def nearest_vertices(points: torch.Tensor, vertices: torch.Tensor, chunk: int = 
 
 
 def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> torch.Tensor:
-    """Mean over points of lambda_e |E - E^|^2 + lambda_p |P - P^|^2 + lambda_w |W - W^|^2, the
-    targets from the nearest canonical head-model vertex of each point's x_o (IMavatar's)."""
+    """lambda_e MSE(E, E^) + lambda_p MSE(P, P^) + lambda_w MSE(W, W^) (means over every element,
+    as the authors' code), the targets from the nearest canonical head-model vertex of each
+    point's x_o (IMavatar's pseudo ground truth; the static bone's target weight is 0)."""
     x_o = c.q * SCALE + avatar.centre + c.O
     nearest = nearest_vertices(x_o, avatar.canonical_vertices).to(x_o.device)
     E, P = avatar.deformer.blendshapes(c.h)
-    e = (E - avatar.vertex_exprdirs[nearest]).pow(2).sum((1, 2))
-    p = (P - avatar.vertex_posedirs[nearest]).pow(2).sum((1, 2))
-    w = (c.W - avatar.vertex_weights[nearest]).pow(2).sum(1)
-    return (config.w_expr * e + config.w_pose * p + config.w_weights * w).mean()
+    e = (E - avatar.vertex_exprdirs[nearest]).pow(2).mean()
+    p = (P - avatar.vertex_posedirs[nearest]).pow(2).mean()
+    w = (c.W - avatar.vertex_weights[nearest]).pow(2).mean()
+    return config.w_expr * e + config.w_pose * p + config.w_weights * w
 
 
 def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: torch.Generator | None = None) -> torch.Tensor:
