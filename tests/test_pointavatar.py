@@ -138,6 +138,13 @@ def test_pointavatar_fits_relights_renders_and_exports_through_the_cli(rendered,
         assert out.is_file()
     res = runner.invoke(app, ["render", "avatar", str(run), "-o", str(tmp_path / "bad.mp4"), "--light", "up"])
     assert res.exit_code != 0 and "--light" in str(res.exception) and not (tmp_path / "bad.mp4").exists()
+    # a run of another method, or of other settings, is refused before any work; so is an unknown demo method
+    res = runner.invoke(app, ["fit", "nha", str(rendered), "-o", str(run), "--iterations", "3"])
+    assert res.exit_code != 0 and "holds a pointavatar run, not nha" in str(res.exception)
+    res = runner.invoke(app, ["fit", "pointavatar", str(rendered), "-o", str(run), "--iterations", "9"])
+    assert res.exit_code != 0 and "other settings" in str(res.exception)
+    res = runner.invoke(app, ["demo", "-o", str(tmp_path / "demo"), "--method", "gaussians"])
+    assert res.exit_code != 0 and "--method" in str(res.exception) and not (tmp_path / "demo.partial").exists()
     res = runner.invoke(app, ["export", str(run), "-o", str(tmp_path / "ply"), "--format", "ply"])
     assert res.exit_code == 0, res.output
     import trimesh

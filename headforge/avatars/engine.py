@@ -174,6 +174,8 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
     resume = (run / "state.json").is_file()
     if resume or (run / "config.json").is_file():
         previous = read_info(run)
+        if previous.get("method") != method.name:
+            raise HeadforgeError(f"{run} holds a {previous.get('method')} run, not {method.name}: choose another -o or delete it")
         saved = previous | {"config": json.loads(json.dumps(method.Config.from_saved(previous.get("config", {}), run).__dict__))}
         if saved != info:
             raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
