@@ -120,6 +120,19 @@ def rasterize_numba(xyz: np.ndarray, faces: np.ndarray, height: int, width: int,
     return face_id, bary, depth
 
 
+def _pair_chunks(xs, xe, ys, ye, todo: torch.Tensor, chunk_pairs: int):
+    """The (primitive, pixel) pairs of the pixel boxes [xs, xe] x [ys, ye] of primitives ``todo``,
+    cut into runs of about ``chunk_pairs`` pairs: box widths, pair counts and their running sums
+    (each (len(todo),)), and the cut points into ``todo`` (a list, first 0, last len(todo))."""
+    box_w = (xe - xs + 1)[todo]
+    counts = box_w * (ye - ys + 1)[todo]
+    ends = torch.cumsum(counts, 0)
+    total = int(ends[-1])
+    cuts = torch.searchsorted(ends, torch.arange(chunk_pairs, max(total, chunk_pairs), chunk_pairs, device=todo.device),
+                              right=True)
+    return box_w, counts, ends, [0, *sorted(set(cuts.tolist()) - {0, len(todo)}), len(todo)]
+
+
 def rasterize_torch(xyz: torch.Tensor, faces: torch.Tensor, height: int, width: int, near: float = 1e-3,
                     chunk_pairs: int = 1 << 22):
     """The numba kernel's z-buffer as vectorised PyTorch on ``xyz``'s device (the CUDA path).
@@ -156,12 +169,7 @@ def rasterize_torch(xyz: torch.Tensor, faces: torch.Tensor, height: int, width: 
     todo = torch.nonzero(ok)[:, 0]  # ascending, so chunks visit faces in the kernel's order
     if len(todo) == 0:
         return face_id.view(B, height, width), bary.view(B, height, width, 3), depth.view(B, height, width)
-    box_w = (xe - xs + 1)[todo]
-    counts = box_w * (ye - ys + 1)[todo]
-    ends = torch.cumsum(counts, 0)
-    total = int(ends[-1])
-    cuts = torch.searchsorted(ends, torch.arange(chunk_pairs, max(total, chunk_pairs), chunk_pairs, device=dev), right=True)
-    bounds = [0, *sorted(set(cuts.tolist()) - {0, len(todo)}), len(todo)]
+    box_w, counts, ends, bounds = _pair_chunks(xs, xe, ys, ye, todo, chunk_pairs)
     for lo, hi in zip(bounds[:-1], bounds[1:]):
         t = todo[lo:hi]
         n = counts[lo:hi]
@@ -326,12 +334,7 @@ def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int
     todo = torch.nonzero(ok)[:, 0]  # ascending, so chunks visit points in the kernel's order
     if len(todo) == 0:
         return shaped()
-    box_w = (xe - xs + 1)[todo]
-    counts = box_w * (ye - ys + 1)[todo]
-    ends = torch.cumsum(counts, 0)
-    total = int(ends[-1])
-    cuts = torch.searchsorted(ends, torch.arange(chunk_pairs, max(total, chunk_pairs), chunk_pairs, device=dev), right=True)
-    bounds = [0, *sorted(set(cuts.tolist()) - {0, len(todo)}), len(todo)]
+    box_w, counts, ends, bounds = _pair_chunks(xs, xe, ys, ye, todo, chunk_pairs)
     # per drawable point, gathered once per pair: box origin and width, image offset; x, y, r², z
     ints = torch.stack([xs[todo], ys[todo], box_w, torch.div(todo, N, rounding_mode="floor") * HW], -1)
     floats = torch.stack([x[todo], y[todo], r[todo] * r[todo], z[todo]], -1)  # r * r: the kernel's r2
