@@ -52,7 +52,6 @@ def main() -> None:
         out[preset] = {}
         for n in [int(v) for v in args.points.split(",")]:
             config.init_points, config.max_points = n, n
-            config.init_point_radius = 0.0
             avatar = method.build(assets, config)
             mesh = trimesh.Trimesh(avatar.canonical_vertices.numpy(), avatar.head.faces.numpy(), process=False)
             pts, _ = trimesh.sample.sample_surface(mesh, n, seed=0)

@@ -17,7 +17,7 @@ import torch
 
 from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.pointavatar.config import PointAvatarConfig
-from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel, initial_point_radius
+from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
 from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras
@@ -96,8 +96,6 @@ class PointAvatarMethod(Method):
 
     def build(self, assets, config: PointAvatarConfig) -> PointAvatarModel:
         config.validate()
-        if config.init_point_radius <= 0:
-            config.init_point_radius = initial_point_radius(config.init_points, config.init_radius)
         rows = assets.rows("train")
         canonical_expression = assets.tracking["expression"][rows].float().mean(0)
         return PointAvatarModel(assets.head_data(), assets.tracking, canonical_expression, config)

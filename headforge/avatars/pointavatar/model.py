@@ -108,7 +108,8 @@ class PointAvatarModel(Avatar):
         self.colour_net = ShadingNet(config.shading_width, config.shading_layers, in_dim=6) if config.shading == "none" else None
         gen = torch.Generator().manual_seed(config.seed)
         self.points = nn.Parameter(sphere_points(config.init_points, config.init_radius, gen))
-        self.register_buffer("radius", torch.tensor(config.init_point_radius))  # world metres
+        radius = config.init_point_radius or initial_point_radius(config.init_points, config.init_radius)
+        self.register_buffer("radius", torch.tensor(radius))  # world metres
         self.register_buffer("visible", torch.zeros(config.init_points, dtype=torch.bool))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))  # seeds the Eikonal samples: exact resume
         self._cache: tuple | None = None
