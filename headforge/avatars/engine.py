@@ -323,9 +323,8 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
     flip = flip_matrix()
     position = {int(f): i for i, f in enumerate(data.index.tolist())}
     for yaw in info.get("novel_yaws", []):
-        files = sorted((dataset / "gt" / "views").glob(f"*_yaw{yaw:+.0f}.png"))
-        rows = [position[int(p.name[:5])] for p in files if int(p.name[:5]) in position]
-        files = [p for p in files if int(p.name[:5]) in position]
+        files = [p for p in sorted((dataset / "gt" / "views").glob(f"*_yaw{yaw:+.0f}.png")) if int(p.name[:5]) in position]
+        rows = [position[int(p.name[:5])] for p in files]
         if not rows:
             continue
         R = torch.tensor(flip @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip, dtype=torch.float32)
