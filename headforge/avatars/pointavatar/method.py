@@ -12,7 +12,6 @@ as the paper's test-time tracking does.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from headforge.avatars.base import Method, Stage, frame_optimiser
@@ -23,22 +22,12 @@ from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras
 
 
-def nearest_vertices(points: torch.Tensor, vertices: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
-    """(N,) index of the nearest of ``vertices`` (V, 3) to each of ``points`` (N, 3)."""
-    if points.device.type == "cpu":
-        from scipy.spatial import cKDTree
-
-        _, idx = cKDTree(vertices.detach().numpy()).query(points.detach().numpy())
-        return torch.from_numpy(idx.astype(np.int64))
-    return torch.cat([torch.cdist(p, vertices).argmin(1) for p in points.detach().split(chunk)])
-
-
 def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> torch.Tensor:
     """lambda_e MSE(E, E^) + lambda_p MSE(P, P^) + lambda_w MSE(W, W^) (means over every element,
     as the authors' code), the targets from the nearest canonical head-model vertex of each
     point's x_o (IMavatar's pseudo ground truth; the static bone's target weight is 0)."""
     x_o = c.q * SCALE + avatar.centre + c.O
-    nearest = nearest_vertices(x_o, avatar.canonical_vertices).to(x_o.device)
+    nearest = avatar.nearest_canonical_vertices(x_o)
     E, P = avatar.deformer.blendshapes(c.h)
     e = (E - avatar.vertex_exprdirs[nearest]).pow(2).mean()
     p = (P - avatar.vertex_posedirs[nearest]).pow(2).mean()

@@ -113,6 +113,7 @@ class PointAvatarModel(Avatar):
         self.register_buffer("visible", torch.zeros(config.init_points, dtype=torch.bool))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))  # seeds the Eikonal samples: exact resume
         self._cache: tuple | None = None
+        self._vertex_tree = None  # the canonical vertices' k-d tree (nearest_canonical_vertices)
 
     def config_flags(self, config) -> None:
         """The render-time switches of ``config`` kept on the avatar (plain Python values)."""
@@ -120,6 +121,17 @@ class PointAvatarModel(Avatar):
         self.points_per_pixel = int(config.points_per_pixel)
         self.hole_filling = bool(config.hole_filling)
         self.eikonal_samples = int(config.eikonal_samples)
+
+    def nearest_canonical_vertices(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+        """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
+        metres): a k-d tree built once on the CPU, chunked distances on a GPU."""
+        if points.device.type == "cpu":
+            if self._vertex_tree is None:
+                from scipy.spatial import cKDTree
+
+                self._vertex_tree = cKDTree(self.canonical_vertices.numpy())
+            return torch.from_numpy(self._vertex_tree.query(points.detach().numpy())[1]).long()
+        return torch.cat([torch.cdist(p, self.canonical_vertices).argmin(1) for p in points.detach().split(chunk)])
 
     @staticmethod
     def _with_static_bone(A: torch.Tensor) -> torch.Tensor:
