@@ -120,7 +120,6 @@ class PointAvatarModel(Avatar):
         self.jacobian_normals = bool(config.jacobian_normals)
         self.points_per_pixel = int(config.points_per_pixel)
         self.hole_filling = bool(config.hole_filling)
-        self.eikonal_samples = int(config.eikonal_samples)
 
     def nearest_canonical_vertices(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
