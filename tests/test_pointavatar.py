@@ -113,6 +113,8 @@ def test_a_killed_pointavatar_run_resumes_to_the_same_result(rendered, tmp_path,
     assert resumed["val_psnr"] == pytest.approx(straight["val_psnr"], abs=0.01)
     for name in ("canonical_points.png", "points.png", "progress.png", "val_worst.png", "metrics.json"):
         assert (tmp_path / "b" / name).is_file(), name
+    again = fit("pointavatar", rendered, tmp_path / "b", tiny_config(), log=lambda m: None)  # a finished run re-scores
+    assert again["val_psnr"] == pytest.approx(resumed["val_psnr"], abs=1e-6)
 
 
 def test_pointavatar_fits_relights_renders_and_exports_through_the_cli(rendered, tmp_path):

@@ -255,7 +255,8 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
     if state["tested"] < len(val_all):
         log(f"test-time optimisation of the validation frames {state['tested']}..{len(val_all)} "
             f"({config.tto_steps} + {config.tto_photometric_steps} photometric steps each)")
-    for chunk in torch.arange(state["tested"], len(val_all)).split(TTO_CHECKPOINT_FRAMES):
+    remaining = torch.arange(state["tested"], len(val_all))
+    for chunk in remaining.split(TTO_CHECKPOINT_FRAMES) if len(remaining) else ():  # (an empty range splits into one empty chunk)
         fit_frames(method, avatar, val_all, config, config.tto_steps, config.tto_photometric_steps, rows=chunk)
         state["tested"] = int(chunk[-1]) + 1
         ctx.checkpoint()
