@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import timed  # noqa: E402
+from timing import render_fps  # noqa: E402
 
 CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "talking_bun.mp4"
 
@@ -46,7 +46,6 @@ def main() -> None:
     from headforge.avatars.nha.config import NHAConfig
     from headforge.avatars.run import load_run
     from headforge.devices import resolve_device
-    from headforge.render.camera import Cameras
 
     if (args.run / "metrics.json").is_file() and not args.reuse:
         sys.exit(f"{args.run} holds a finished run: pass another --run, or --reuse to report it")
@@ -74,21 +73,11 @@ def main() -> None:
     reused = (args.run / "metrics.json").is_file()
     metrics = fit("nha", dataset, args.run, config, log=lambda m: print(m, file=sys.stderr), device=device)
     run = load_run(args.run, device)
-    avatar, config = run.avatar, run.config
-    params = avatar.frame_params(torch.tensor(run.assets.rows("val")[:1], device=device))
-    cams = Cameras.at_origin(run.assets.intrinsics(config.resolution).to(device), 1, config.resolution)
-
-    def render() -> None:
-        avatar.render(params, cams)
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    with torch.no_grad():
-        ms = timed(render, repeats=10)
+    fps = render_fps(run, device)
     figures = {k: v for k, v in metrics.items() if k.startswith("val_") or k.startswith("novel_")}
     print(json.dumps({"train_minutes": metrics["train_minutes"], **figures, "matte_sigma_px": metrics["matte_sigma_px"],
-                      "iterations": metrics["iterations"], "preset": args.preset, "resolution": config.resolution,
-                      "device": str(device), "overrides": args.set, f"render_fps_{config.resolution}": round(1000 / ms, 2),
+                      "iterations": metrics["iterations"], "preset": args.preset, "resolution": run.config.resolution,
+                      "device": str(device), "overrides": args.set, f"render_fps_{run.config.resolution}": fps,
                       "lpips": "n/a (no pretrained weights)", "reused_run": reused,
                       "threads": args.threads if device.type == "cpu" else None}))
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import timed  # noqa: E402
+from timing import render_fps  # noqa: E402
 
 KEYS = ("val_psnr", "val_psnr_head", "val_psnr_face", "val_akd_px", "val_eye_opening_error_px",
         "val_mouth_opening_error_px", "val_ssim", "val_l1", "val_ms_ssim", "val_frames")
@@ -42,7 +42,6 @@ def main() -> None:
     from headforge.avatars.pointavatar.config import PointAvatarConfig
     from headforge.avatars.run import load_run, read_info
     from headforge.devices import resolve_device
-    from headforge.render.camera import Cameras
 
     if (args.run / "metrics.json").is_file() and not args.reuse:
         sys.exit(f"{args.run} holds a finished run: pass another --run, or --reuse to report it")
@@ -56,22 +55,10 @@ def main() -> None:
         config.override(assignment)
     metrics = fit("pointavatar", args.dataset, args.run, config, log=lambda m: print(m, file=sys.stderr), device=device)
     run = load_run(args.run, device)
-    avatar = run.avatar
-    params = avatar.frame_params(torch.tensor(run.assets.rows("val")[:1], device=device))
-    res = run.config.resolution
-    cams = Cameras.at_origin(run.assets.intrinsics(res).to(device), 1, res)
-
-    def render() -> None:
-        avatar.render(params, cams)
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    with torch.no_grad():
-        render()  # the canonical state is cached from here on, as when rendering a sequence
-        ms = timed(render, repeats=10)
+    fps = render_fps(run, device)
     out = {"train_minutes": metrics["train_minutes"], **{k: metrics[k] for k in KEYS if k in metrics},
            "val_psnr_no_hole_filling": metrics.get("val_psnr_no_hole_filling"),
-           f"render_fps_{res}": round(1000 / ms, 2), "n_points": metrics["n_points"], "iterations": metrics["iterations"],
+           f"render_fps_{run.config.resolution}": fps, "n_points": metrics["n_points"], "iterations": metrics["iterations"],
            "preset": args.preset, "device": str(device), "overrides": args.set, "threads": args.threads}
     if args.nha_run is not None:
         nha = json.loads((args.nha_run / "metrics.json").read_text())
