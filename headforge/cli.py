@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from headforge.commands import craft, demo, evaluate, export, fit, model, render, synth, track
+from headforge.commands import batch, craft, demo, evaluate, export, fit, model, render, synth, track
 from headforge.commands.common import console
 from headforge.errors import HeadforgeError
 
@@ -17,6 +17,7 @@ app = typer.Typer(help="headforge: animatable 3D head avatars from phone videos 
 app.add_typer(model.app, name="model")
 app.add_typer(render.app, name="render")
 app.add_typer(craft.app, name="craft")
+app.add_typer(batch.app, name="batch")
 app.command("track")(track.track)
 app.command("fit")(fit.fit)
 app.command("export")(export.export)
