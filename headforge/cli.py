@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from headforge.commands import batch, craft, demo, evaluate, export, fit, model, render, synth, track
+from headforge.commands import batch, craft, demo, evaluate, export, fit, model, render, synth, track, view
 from headforge.commands.common import console
 from headforge.errors import HeadforgeError
 
@@ -24,6 +24,7 @@ app.command("export")(export.export)
 app.command("synth")(synth.synth)
 app.command("eval")(evaluate.evaluate)
 app.command("demo")(demo.demo)
+app.command("view")(view.view)
 
 
 def main() -> None:

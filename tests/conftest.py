@@ -130,6 +130,25 @@ def synth_bench(tmp_path_factory, open_head_data):
     return out, config, report
 
 
+@pytest.fixture(scope="session")
+def open_head_nha_run(tmp_path_factory, open_head_data):
+    """A tiny NHA run folder on open-head (its 52 ARKit expressions, 5 joints): a few iterations at
+    64 px on a dataset rendered from the model (:func:`write_rendered_dataset`, no MediaPipe)."""
+    from headforge.avatars.engine import fit
+    from headforge.avatars.nha.config import NHAConfig
+
+    root = tmp_path_factory.mktemp("open_head_nha")
+    data = write_rendered_dataset(root / "data", open_head_data, frames=6, val=2, resolution=96)
+    config = NHAConfig.quick()
+    for k, v in {"resolution": 64, "subdivide": False, "geometry_iters": 3, "texture_iters": 3, "joint_iters": 2,
+                 "align_steps": 1, "val_every": 8, "val_frames": 1, "val_tto_steps": 1, "tto_steps": 1,
+                 "checkpoint_every": 8, "tex_grid": 32, "geo_width": 32, "tex_width": 32, "tex_channels": 8,
+                 "tex_layers": 2}.items():
+        setattr(config, k, v)
+    fit("nha", data, root / "run", config, log=lambda m: None)
+    return root / "run"
+
+
 @pytest.fixture
 def tiny_head(monkeypatch):
     """``load_data("tiny-nha")`` gives the fixed tiny NHA head (:func:`tiny_nha_head_data`)."""

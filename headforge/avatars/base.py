@@ -59,6 +59,18 @@ class Geometry:
     radius: torch.Tensor | None = None
 
 
+@dataclass
+class Clip:
+    """A driving clip for an animated export: ``sequence`` the avatar's frame parameters (T, ...)
+    (its own fitted frames or a retargeted driver, :mod:`headforge.avatars.reenact`), ``fps``, and
+    the clip's camera: intrinsics ``K`` (3, 3) pixels at ``resolution`` (square images)."""
+
+    sequence: FrameParams
+    fps: float
+    K: torch.Tensor
+    resolution: int
+
+
 class Avatar(nn.Module):
     """Base of every method's avatar. ``frames`` holds the per-frame parameters of the run's
     dataset (``FRAME_KEYS`` -> (T, ...) parameters): training fits them, test-time fitting
@@ -75,8 +87,10 @@ class Avatar(nn.Module):
     def geometry(self, params: FrameParams) -> Geometry:
         raise NotImplementedError
 
-    def export(self, output: Path, fmt: str, frames: list[int] | None = None, texture_size: int = 512) -> list[Path]:
-        """Write the avatar to ``output`` in ``fmt``; returns the files written."""
+    def export(self, output: Path, fmt: str, frames: list[int] | None = None, texture_size: int = 512,
+               clip: Clip | None = None) -> list[Path]:
+        """Write the avatar to ``output`` in ``fmt``; returns the files written. ``clip``: the
+        sequence an animated format (glb, a PLY sequence) carries."""
         raise NotImplementedError
 
     def export_formats(self) -> tuple[str, ...]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from headforge.errors import HeadforgeError
@@ -15,6 +16,49 @@ def own_sequence(avatar, assets, split: str = "val") -> FrameParams:
     """The avatar's fitted parameters of its dataset's ``split`` frames (train, val or all)."""
     rows = assets.rows(split)
     return {k: avatar.frames[k].detach()[rows] for k in FRAME_KEYS}
+
+
+def driving_clip(avatar, assets, driving: Path | None, split: str = "all") -> tuple[FrameParams, float]:
+    """(sequence, fps) that drive ``avatar``: with ``driving`` None its own ``split`` frames at its
+    dataset's fps; a ``.csv`` file: an ARKit blendshape recording (:func:`arkit_sequence`); else a
+    tracked dataset (:func:`driving_sequence`)."""
+    if driving is None:
+        return own_sequence(avatar, assets, split), float(assets.meta.get("fps", 25.0))
+    driving = Path(driving)
+    if driving.suffix.lower() == ".csv":
+        return arkit_sequence(avatar, assets, driving)
+    return driving_sequence(avatar, assets, driving), float(_dataset_fps(driving))
+
+
+def _dataset_fps(root: Path) -> float:
+    from headforge.data.dataset import read_meta
+
+    return float(read_meta(root).get("fps", 25.0))
+
+
+def arkit_sequence(avatar, assets, path: Path) -> tuple[FrameParams, float]:
+    """A Live Link Face–style CSV (:mod:`headforge.data.arkit`) as parameters of this avatar:
+    the blendshape weights as its expressions (the head model's expressions must be the ARKit
+    names, as open-head's are), the head rotation applied on top of the avatar's mean root pose,
+    the eye rotations as eye poses, the jaw and neck at rest (ARKit's jawOpen is a blendshape),
+    the avatar's mean translation. Returns (sequence, the recording's fps)."""
+    from scipy.spatial.transform import Rotation
+
+    from headforge.data.arkit import read_arkit_csv
+
+    names = list(assets.meta.get("expression_names") or avatar.head.expression_names)
+    clip = read_arkit_csv(path, names)
+    T = len(clip.weights)
+    own = {k: v.detach().cpu() for k, v in avatar.frames.items()}
+    poses = avatar.head.effective_poses({"root_pose": own["root_pose"]})  # the tracked (limited) rotations
+    mean_root = Rotation.from_rotvec(poses["root_pose"].numpy()).mean()
+    root = (Rotation.from_rotvec(clip.rotations["head"]) * mean_root).as_rotvec()
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    tracked = {"expression": f32(clip.weights), "root_pose": f32(root), "neck_pose": torch.zeros(T, 3),
+               "jaw_pose": torch.zeros(T, 3), "eye_left_pose": f32(clip.rotations["eye_left"]),
+               "eye_right_pose": f32(clip.rotations["eye_right"]),
+               "translation": own["translation"].mean(0).expand(T, 3).clone()}
+    return avatar.params_from_tracking(tracked), clip.fps
 
 
 def driving_sequence(avatar, assets, driving: Path) -> FrameParams:

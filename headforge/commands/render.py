@@ -38,7 +38,8 @@ def turntable(output: Path = typer.Option(..., "-o", "--output", help="MP4 to wr
 @app.command("avatar")
 def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit"),
            output: Path = typer.Option(..., "-o", "--output", help="MP4 to write"),
-           driving: Optional[Path] = typer.Option(None, help="dataset whose tracked expressions/poses drive the avatar"),
+           driving: Optional[Path] = typer.Option(None, help="dataset whose tracked expressions/poses drive the avatar, "
+                                                             "or a Live Link Face CSV of ARKit blendshapes"),
            orbit: bool = typer.Option(False, help="orbit the camera around the head (novel views)"),
            split: str = typer.Option("val", help="frames of the run's own dataset when not driven: train, val or all"),
            max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
@@ -46,13 +47,13 @@ def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit")
                                                           "(Lambert on the learned albedo; head axes: x the subject's "
                                                           "left, y up, z to the camera), rotate:DEGREES (the learned "
                                                           "shading, light turned) or a file of 9x3 SH coefficients"),
-           fps: float = typer.Option(25.0)) -> None:
+           fps: Optional[float] = typer.Option(None, help="frame rate of the video (default: the driving clip's)")) -> None:
     """Reenactment, novel views and relighting of a trained avatar, from the run folder alone."""
-    from headforge.avatars.reenact import driving_sequence, own_sequence, render_sequence, truncate
+    from headforge.avatars.reenact import driving_clip, render_sequence, truncate
     from headforge.avatars.run import load_run
     from headforge.render.io import write_mp4
 
-    if fps <= 0:
+    if fps is not None and fps <= 0:
         raise HeadforgeError(f"--fps must be > 0, got {fps}")
     options = {}
     if light is not None:
@@ -62,7 +63,8 @@ def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit")
     r = load_run(run)
     if options and not getattr(r.avatar, "relightable", False):
         raise HeadforgeError(f"--light: {r.method.name} avatars cannot be relit (PointAvatar's can)")
-    seq = driving_sequence(r.avatar, r.assets, driving) if driving is not None else own_sequence(r.avatar, r.assets, split)
+    seq, clip_fps = driving_clip(r.avatar, r.assets, driving, split)
+    fps = fps or clip_fps
     seq = truncate(seq, max_frames)
     T = seq["translation"].shape[0]
     if T == 0:

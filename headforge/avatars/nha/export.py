@@ -1,6 +1,7 @@
-"""Export a trained NHA: baked UV texture, neutral mesh and per-frame meshes (OBJ/PLY/GLB via
-trimesh), and videos for reenactment (driving expressions/poses from another dataset) and
-novel views (orbit)."""
+"""Export a trained NHA: baked UV texture, neutral mesh and per-frame meshes (OBJ/PLY via
+trimesh), the animatable glTF (GLB: skin, 52 expression morph targets, animation; written by
+:mod:`headforge.export.gltf`), and videos for reenactment (driving expressions/poses from another
+dataset) and novel views (orbit)."""
 
 from __future__ import annotations
 
@@ -65,6 +66,14 @@ def bake_texture(avatar, size: int = 512) -> np.ndarray:
     return image
 
 
+def split_seams(faces: np.ndarray, uv_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """UV seams: one output vertex per (vertex, uv) corner pair. faces, uv_faces (F, 3) ->
+    vertex ids (N,), uv ids (N,) of the output vertices and the output faces (F, 3)."""
+    pairs = np.stack([faces.ravel(), uv_faces.ravel()], 1)
+    uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return uniq[:, 0], uniq[:, 1], inverse.reshape(-1, 3)
+
+
 def _trimesh(vertices: np.ndarray, avatar, texture: np.ndarray | None):
     import trimesh
     from PIL import Image
@@ -72,22 +81,62 @@ def _trimesh(vertices: np.ndarray, avatar, texture: np.ndarray | None):
     faces = avatar.head.faces.numpy()
     if texture is None:
         return trimesh.Trimesh(vertices, faces, process=False)
-    # UV seams: one output vertex per (vertex, uv) corner pair
-    uv_faces = avatar.head.uv_faces.numpy()
-    pairs = np.stack([faces.ravel(), uv_faces.ravel()], 1)
-    uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    new_faces = inverse.reshape(-1, 3)
-    uvs = avatar.head.uvs.numpy()[uniq[:, 1]]
+    vertex_ids, uv_ids, new_faces = split_seams(faces, avatar.head.uv_faces.numpy())
+    uniq = np.stack([vertex_ids, uv_ids], 1)
+    uvs = avatar.head.uvs.numpy()[uv_ids]
     image = Image.fromarray((np.clip(texture, 0, 1) * 255).round().astype(np.uint8))
     visual = trimesh.visual.TextureVisuals(uv=uvs, image=image)
     return trimesh.Trimesh(vertices[uniq[:, 0]], new_faces, visual=visual, process=False)
 
 
 @torch.no_grad()
-def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None = None, texture_size: int = 512) -> list[Path]:
+def write_animated_glb(avatar, path: Path, texture: np.ndarray, clip=None) -> Path:
+    """The animatable glTF of ``avatar``: the neutral mesh with its identity and static offsets
+    (NHA's neck-pose dependent offsets at zero neck pose), split at UV seams; the head model's
+    skin (root, neck, jaw, eyes) at the avatar's rest joints; one morph target per expression
+    (named as the head model names them); the baked ``texture`` (H, W, 3 in [0, 1]) as an unlit
+    base colour; and, with a ``clip`` (:class:`headforge.avatars.base.Clip`: frame parameters with
+    the avatar's raw poses, fps, camera), an animation: joint rotations (the poses the skinning
+    sees), the expressions as morph weights and the head's translation (camera -> glTF world,
+    :func:`gltf.camera_to_gltf`), and the clip's camera."""
+    import io
+
+    from PIL import Image
+
+    from headforge.export import gltf
+    from headforge.head.model import POSE_ARGS
+    from headforge.head.topology import vertex_normals
+
+    head = avatar.head
+    out = head(shape=avatar.shape, offsets=avatar.offsets(torch.zeros(1, 3))[:1])
+    rest, joints = out.vertices[0], out.joints[0]  # zero pose: the rest pose
+    vertex_ids, uv_ids, faces = split_seams(head.faces.numpy(), head.uv_faces.numpy())
+    normals = vertex_normals(rest[None], head.faces)[0].numpy()
+    exprdirs = head.blenddirs[head.n_shape:].reshape(head.n_expr, -1, 3).numpy()
+    png = io.BytesIO()
+    Image.fromarray((np.clip(texture, 0, 1) * 255).round().astype(np.uint8)).save(png, format="PNG")
+    skin = gltf.Skin(list(head.joint_names), head.parents.numpy(), joints.numpy(), head.weights.numpy()[vertex_ids])
+    animation = camera = None
+    if clip is not None:
+        seq = {k: v.detach().cpu() for k, v in clip.sequence.items()}
+        poses = head.effective_poses({k: seq[k] for k in POSE_ARGS})
+        animation = gltf.Animation(clip.fps, torch.stack([poses[k] for k in POSE_ARGS], 1).numpy(),
+                                   gltf.camera_to_gltf(seq["translation"].numpy()), seq["expression"].numpy())
+        camera = gltf.Camera(clip.K.numpy(), clip.resolution, clip.resolution)
+    names = head.expression_names or [f"expression_{i}" for i in range(head.n_expr)]
+    return gltf.write_glb(path, rest.numpy()[vertex_ids], faces, normals=normals[vertex_ids],
+                          uvs=head.uvs.numpy()[uv_ids], texture_png=png.getvalue(), unlit=True, skin=skin,
+                          morph_targets=exprdirs[:, vertex_ids], target_names=list(names), animation=animation,
+                          camera=camera, extras={"method": "nha", "head_model": head.name})
+
+
+@torch.no_grad()
+def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None = None, texture_size: int = 512,
+               clip=None) -> list[Path]:
     """Write ``avatar.<fmt>`` (neutral: zero expression and pose, canonical axes, metres) with its
     baked texture, and ``frames/<index>.<fmt>`` for the given tracked frames (canonical head axes,
-    posed)."""
+    posed). GLB: ``avatar.glb`` is the animatable glTF (:func:`write_animated_glb`), animated by
+    ``clip`` when given."""
     if fmt not in FORMATS:
         raise HeadforgeError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     output.mkdir(parents=True, exist_ok=True)
@@ -95,6 +144,8 @@ def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None 
     written = []
     offsets = avatar.offsets(torch.zeros(1, 3))
     neutral = avatar.head(shape=avatar.shape, offsets=offsets).vertices[0].numpy()
+    if fmt == "glb":
+        written.append(write_animated_glb(avatar, output / "avatar.glb", texture, clip))
 
     def save(vertices: np.ndarray, path: Path) -> None:
         m = _trimesh(vertices, avatar, texture if fmt != "ply" else None)
@@ -110,7 +161,8 @@ def export_run(avatar, output: Path, fmt: str = "obj", frames: list[int] | None 
         tmp.replace(path)
         written.append(path)
 
-    save(neutral, output / f"avatar.{fmt}")
+    if fmt != "glb":
+        save(neutral, output / f"avatar.{fmt}")
     if frames:
         (output / "frames").mkdir(exist_ok=True)
         T = avatar.frames["translation"].shape[0]

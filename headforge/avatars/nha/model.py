@@ -262,10 +262,10 @@ class NeuralHeadAvatar(Avatar):
             keep[head.region("neck")] = False
         return Geometry(self.pose(params)[0], head.faces, face_vertices=face, head_vertices=keep)
 
-    def export(self, output, fmt: str, frames: list[int] | None = None, texture_size: int = 512):
+    def export(self, output, fmt: str, frames: list[int] | None = None, texture_size: int = 512, clip=None):
         from headforge.avatars.nha.export import export_run
 
-        return export_run(self, output, fmt, frames, texture_size)
+        return export_run(self, output, fmt, frames, texture_size, clip)
 
     def export_formats(self) -> tuple[str, ...]:
         from headforge.avatars.nha.export import FORMATS

@@ -310,10 +310,13 @@ class PointAvatarModel(Avatar):
         return ("ply",)
 
     @torch.no_grad()
-    def export(self, output: Path, fmt: str, frames: list[int] | None = None, texture_size: int = 512) -> list[Path]:
+    def export(self, output: Path, fmt: str, frames: list[int] | None = None, texture_size: int = 512,
+               clip=None) -> list[Path]:
         """PLY point clouds: ``canonical.ply`` (the head model's canonical pose x_o, normals by the
         canonical SDF) and ``frame_XXXXX.ply`` posed in camera space for ``frames`` (default: 0); each
-        vertex with position (m), normal, albedo (uchar) and radius (m)."""
+        vertex with position (m), normal, albedo (uchar) and radius (m). With a driving ``clip``
+        (:class:`headforge.avatars.base.Clip`) also the animated sequence ``sequence/XXXXX.ply``
+        (posed, camera space, one file per clip frame at ``clip.fps``)."""
         if fmt != "ply":
             raise HeadforgeError(f"PointAvatar exports ply, not {fmt!r}")
         output.mkdir(parents=True, exist_ok=True)
@@ -328,6 +331,15 @@ class PointAvatarModel(Avatar):
             path = output / f"frame_{f:05d}.ply"
             write_ply(path, pts[0], n_cam[0], albedo, self.radius)
             written.append(path)
+        if clip is not None:
+            (output / "sequence").mkdir(exist_ok=True)
+            T = clip.sequence["translation"].shape[0]
+            for t in range(T):
+                params = {k: v[t:t + 1].to(self.points.device) for k, v in clip.sequence.items()}
+                _, pts, n_cam, _ = self.posed(params)
+                path = output / "sequence" / f"{t:05d}.ply"
+                write_ply(path, pts[0], n_cam[0], albedo, self.radius)
+                written.append(path)
         return written
 
 
