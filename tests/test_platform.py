@@ -17,10 +17,11 @@ sys.path.insert(0, str(Path(__file__).parent / "data"))
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-def test_nha_on_the_engine_reproduces_the_old_trainers_losses(rendered, tmp_path, monkeypatch):
+def test_nha_on_the_engine_reproduces_its_reference_losses(rendered, tmp_path, monkeypatch):
     """Every energy evaluation of a 50-iteration tiny run (training steps, the per-frame
-    alignment, in-training validation and test-time fitting) equals the pre-platform trainer's,
-    recorded by tests/data/make_nha_reference.py at commit 64909a8."""
+    alignment, in-training validation and test-time fitting) equals the reference recorded by
+    tests/data/make_nha_reference.py: at 64909a8 the pre-platform trainer's (the move was exact),
+    since 2026-12-02 the engine's with the energies on the protocol's head region."""
     from make_nha_reference import reference_settings
 
     from headforge.avatars import engine

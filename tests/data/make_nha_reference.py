@@ -1,15 +1,19 @@
-"""Record the NHA reference losses the platform move is checked against (tests/test_platform.py).
+"""Record the NHA reference losses that tests/test_platform.py checks NHA's training against.
 
-Run once with the code *before* a change that must not alter NHA's training:
+Run once with the code *before* a change that must not alter NHA's training, or *after* a
+change that alters it on purpose (say so in the commit):
 
-    python tests/data/make_nha_reference.py
+    python tests/data/make_nha_reference.py COMMIT
 
 It renders the tiny dataset of ``tests/conftest.py::write_rendered_dataset`` (no MediaPipe) of
 the fixed tiny head model ``tiny_nha_head_data`` (an open-head build is not bit-identical between
-builds, so a reference on it would hold on one machine's cache only), trains NHA for 50 iterations with ``reference_config()`` and writes every energy evaluation
-(training steps, per-frame alignment, in-training validation and test-time fitting, in call
-order) at full precision to ``nha_reference_losses.json``. Recorded at commit 64909a8, before the
-avatar platform existed.
+builds, so a reference on it would hold on one machine's cache only), trains NHA for 50 iterations
+with ``reference_settings()`` and writes every energy evaluation (training steps, per-frame
+alignment, in-training validation and test-time fitting, in call order) at full precision to
+``nha_reference_losses.json``. History: recorded at 64909a8 by the pre-platform trainer (the
+platform move reproduced it to 1e-6); re-recorded after NHA's energies took the protocol's head
+region (``headforge.avatars.nha.method.energy_area``), which changes the silhouette, outline and
+photometric terms by design.
 """
 
 from __future__ import annotations
@@ -45,26 +49,28 @@ def main() -> None:
     import torch
 
     from conftest import write_rendered_dataset
-    from headforge.avatars.nha import trainer
+    from headforge.avatars import engine
+    from headforge.avatars.nha.config import NHAConfig
+    from headforge.avatars.nha.method import NHAMethod
 
-    config = trainer.NHAConfig.quick()
+    commit = sys.argv[1] if len(sys.argv) > 1 else "unknown"
+    config = NHAConfig.quick()
     for k, v in reference_settings().items():
         setattr(config, k, v)
     calls = []
-    original = trainer.losses
+    original = NHAMethod.losses
 
-    def recording(*args, **kwargs):
-        terms = original(*args, **kwargs)
+    def recording(self, *args, **kwargs):
+        terms = original(self, *args, **kwargs)
         calls.append({k: float(v.detach()) for k, v in terms.items()})
         return terms
 
-    trainer.losses = recording
+    NHAMethod.losses = recording
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         dataset = write_rendered_dataset(Path(tmp) / "data", use_tiny_head())
-        metrics = trainer.fit(dataset, Path(tmp) / "run", config, log=lambda m: None)
-    out = {"commit": "64909a8", "settings": reference_settings(), "calls": calls,
-           "val_psnr": metrics["val_psnr"]}
+        metrics = engine.fit("nha", dataset, Path(tmp) / "run", config, log=lambda m: None)
+    out = {"commit": commit, "settings": reference_settings(), "calls": calls, "val_psnr": metrics["val_psnr"]}
     (HERE / "nha_reference_losses.json").write_text(json.dumps(out))
     print(f"{len(calls)} energy evaluations, val PSNR {metrics['val_psnr']}")
 

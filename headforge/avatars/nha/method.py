@@ -16,7 +16,7 @@ where a mesh edge is one; metrics.json gives the held-out PSNR with and without 
 Terms we can and cannot have on real video (no pretrained weights): NHA's normal term needs a
 normal predictor and its perceptual term VGG -- both absent, so the normal term is off and a
 weight-free SSIM term stands in for the perceptual one. NHA's semantic term becomes two regions:
-the whole head against the foreground mask above the neck cut (silhouette, plus the outline
+the whole head against the foreground mask inside :func:`energy_area` (silhouette, plus the outline
 chamfer of :func:`contour_term`), and the face against the face oval of the detected landmarks.
 The photometric target is the matted frame (on white by its soft matte, as scored).
 """
@@ -37,13 +37,25 @@ ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
 
 def _above_neck(ring_indices: torch.Tensor, verts: torch.Tensor, K: torch.Tensor, res: int) -> torch.Tensor:
     """(B, H, W) bool: pixels above the neck cut, the mean row of the ring ``ring_indices`` of
-    ``verts`` (B, V, 3) projected (the avatar's ``train_ring`` bounds the energies' area); below
-    it the foreground mask shows neck and shoulders the avatar does not model."""
+    ``verts`` (B, V, 3) projected; below it the foreground mask shows neck and shoulders the
+    avatar does not model."""
     ring = verts[:, ring_indices]
     y = project_points(ring, K)[..., 1]
     cut = y.mean(dim=1).detach()  # (B,) the ring's middle: the back of the neck projects higher
     rows = torch.arange(res, dtype=verts.dtype, device=verts.device)[None, :, None]
     return (rows < cut[:, None, None]).expand(-1, -1, res)
+
+
+def energy_area(region: torch.Tensor, ring_indices: torch.Tensor, verts: torch.Tensor, K: torch.Tensor,
+                res: int) -> torch.Tensor:
+    """(B, H, W) bool: where the energies compare the avatar with the frame. The scoring
+    protocol's head ``region`` (B, H, W) bool, from the tracked head model: it follows the
+    head's pose, so a looking-down chin is trained as it is scored; together with the rows above
+    the avatar's own open neck end (``ring_indices``, the template's ``train_ring``), which with
+    the lower neck kept reach below NHA's cut to the chin's outline against the neck
+    (docs/nha_table1.md). Until 2026-12-02 the rows alone: a looking-down frame's chin lay below
+    them (docs/nha_figures.md)."""
+    return region | _above_neck(ring_indices, verts, K, res)
 
 
 def mask_outline(mask: torch.Tensor, area: torch.Tensor, max_points: int = 3000) -> list[torch.Tensor]:
@@ -126,7 +138,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     semantic = config.w_semantic > 0 and stage != "texture"
     r = avatar.render(params, Cameras.at_origin(K, B, res), background=1.0, texture=photometric, face_region=semantic,
                       matte=False)
-    area = _above_neck(avatar.train_ring, r.vertices, K, res)
+    area = energy_area(batch["region"], avatar.train_ring, r.vertices, K, res)
     gt_mask = batch["mask"] * area
     out = {}
     # landmarks (L1, pixels / resolution), detections that exist only

@@ -139,8 +139,8 @@ class NeuralHeadAvatar(Avatar):
         self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
         self.register_buffer("uv_corners", self.head.face_corner_uvs())
         # The rows above train_ring's mean row (the template's own open neck boundary: NHA's cut, or 3 cm
-        # lower with the lower neck kept) bound the area of the training and fitting energies; the scored
-        # area is the protocol's (headforge.metrics.protocol), from the tracked head model.
+        # lower with the lower neck kept), with the protocol's head region, bound the area of the
+        # training and fitting energies (method.energy_area).
         self.register_buffer("train_ring", torch.as_tensor(open_neck_ring(template), dtype=torch.long),
                              persistent=False)  # derived
         self.has_lips = self.head.num_landmarks == 478
