@@ -1,0 +1,173 @@
+"""``headforge view``: the server (localhost, read-only, no traversal, one-line errors) and, in
+headless Chromium, the page (the avatar drawn where headforge draws it, a slider changes it) and
+the exported .glb loaded by three.js's GLTFLoader."""
+
+from __future__ import annotations
+
+import json
+import socket
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+import torch
+
+from headforge.errors import HeadforgeError
+
+
+def get(url: str, method: str = "GET") -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method=method), timeout=30) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as err:
+        return err.code, b""
+
+
+@pytest.fixture(scope="module")
+def served(open_head_nha_run):
+    """The viewer of the tiny open-head NHA run on a free port of 127.0.0.1."""
+    from headforge.viewer.scene import build_scene
+    from headforge.viewer.server import ViewerServer
+
+    server = ViewerServer(build_scene(open_head_nha_run, texture_size=128), port=0).start()
+    yield server
+    server.stop()
+
+
+def test_the_server_binds_localhost_and_serves_only_its_own_files(served, open_head_nha_run):
+    assert served.host == "127.0.0.1" and served.url.startswith("http://127.0.0.1:")
+    status, body = get(served.url + "scene.json")
+    scene = json.loads(body)
+    assert status == 200 and scene["kind"] == "mesh" and len(scene["expressions"]) == 52
+    assert get(served.url)[0] == 200 and get(served.url + "avatar.glb")[1][:4] == b"glTF"
+    assert get(served.url + "vendor/three/three.module.js")[0] == 200
+    # nothing else: no file of the run folder, no traversal, no writes
+    for path in ("run.json", "../run.json", "%2e%2e/run.json", "..%2f..%2fetc%2fpasswd", "vendor/../scene.json",
+                 "/etc/passwd", "static/index.html"):
+        assert get(served.url + path)[0] == 404, path
+    assert get(served.url + "scene.json", "POST")[0] == 405
+    assert get(served.url + "scene.json", "PUT")[0] == 405
+    assert (open_head_nha_run / "run.json").is_file() and not (open_head_nha_run / "avatar.glb").exists()
+
+
+def test_bad_input_is_a_one_line_error(served, open_head_nha_run, tmp_path):
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from headforge.cli import app
+    from headforge.viewer.scene import Scene, build_scene
+    from headforge.viewer.server import ViewerServer
+
+    with pytest.raises(HeadforgeError, match="is in use"):
+        ViewerServer(Scene({"kind": "mesh"}), port=served.port)
+    with pytest.raises(HeadforgeError, match="does not exist"):
+        build_scene(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(HeadforgeError, match="neither a run folder"):
+        build_scene(tmp_path / "empty")
+    unknown = tmp_path / "unknown"
+    shutil.copytree(open_head_nha_run, unknown)
+    info = json.loads((unknown / "run.json").read_text())
+    (unknown / "run.json").write_text(json.dumps({**info, "method": "nosuch"}))
+    with pytest.raises(HeadforgeError, match="unknown avatar method 'nosuch'"):
+        build_scene(unknown)
+    # through the command: exit 1, one line
+    for args in ([str(tmp_path / "nothing")], [str(unknown)], [str(open_head_nha_run), "--port", str(served.port)]):
+        res = CliRunner().invoke(app, ["view", *args])
+        assert res.exit_code == 1 and isinstance(res.exception, (HeadforgeError, SystemExit)), res.output
+
+
+def test_a_tracked_dataset_is_viewed_as_its_tracked_head(open_head_nha_run):
+    from headforge.viewer.scene import build_scene
+
+    data = open_head_nha_run.parent / "data"
+    scene = build_scene(data)
+    assert scene.manifest["kind"] == "mesh" and scene.manifest["frames"] == 6
+    assert scene.files["avatar.glb"][:4] == b"glTF"
+
+
+# ---- in the browser ----------------------------------------------------------------------------------
+def browser_or_skip():
+    from headforge.viewer import browser
+
+    reason = browser.missing()
+    if reason:
+        pytest.skip(f"browser test skipped: {reason}")
+    return browser
+
+
+def test_the_viewer_draws_the_avatar_where_headforge_does_and_a_slider_moves_it(served, open_head_nha_run):
+    """Frame 0 in the page (the clip's camera) covers the pixels headforge's own render covers
+    (IoU >= 0.9); moving the jawOpen slider changes the picture around the mouth."""
+    browser = browser_or_skip()
+    from headforge.avatars.run import load_run
+    from headforge.render.camera import Cameras, scale_intrinsics
+
+    size = 192
+    r = load_run(open_head_nha_run)
+    K = scale_intrinsics(r.assets.intrinsics(r.config.resolution), size / r.config.resolution)
+    first = r.assets.rows("all")[:1]
+    with torch.no_grad():
+        coverage = r.avatar.render(r.avatar.frame_params(torch.tensor(first)), Cameras.at_origin(K, 1, size)).coverage[0]
+    expected = coverage.numpy() > 0.5
+    with browser.page() as page:
+        browser.open_viewer(page, served.url, size)
+        shown = browser.frame(page, 0)
+        drawn = shown.min(-1) < 250  # anything not the white background
+        assert drawn.shape == expected.shape
+        iou = (drawn & expected).sum() / (drawn | expected).sum()
+        assert iou >= 0.9, iou
+        page.locator("#expr-jawOpen").fill("1")
+        page.evaluate("window.viewer.draw()")
+        moved = browser.canvas(page)
+        changed = np.abs(moved.astype(int) - shown.astype(int)).max(-1) > 10
+        assert changed.sum() > 30
+        ys = np.nonzero(changed)[0]
+        assert ys.mean() > np.nonzero(expected)[0].mean()  # below the head's centre: the mouth and chin
+        assert page.errors == []
+
+
+def test_three_js_loads_the_exported_glb(open_head_nha_run, tmp_path):
+    """GLTFLoader in headless Chromium reads ``headforge export --format glb``: one skinned mesh,
+    one skin of five joints, 52 morph targets with the ARKit names, one animation with a track
+    per joint rotation, the head's translation and the morph weights."""
+    browser = browser_or_skip()
+    from typer.testing import CliRunner
+
+    from headforge.cli import app
+    from headforge.viewer.scene import Scene
+    from headforge.viewer.server import ViewerServer
+
+    res = CliRunner().invoke(app, ["export", str(open_head_nha_run), "-o", str(tmp_path), "--format", "glb",
+                                   "--texture-size", "64"])
+    assert res.exit_code == 0, res.output
+    glb = (tmp_path / "avatar.glb").read_bytes()
+    # the viewer's three.js files, with the exported file and a bare page beside them
+    probe = b"""<!doctype html><script type="importmap">{"imports": {"three": "./vendor/three/three.module.js",
+        "three/addons/": "./vendor/three/addons/"}}</script>"""
+    server = ViewerServer(Scene({}, {"export.glb": glb, "probe.html": probe}), port=0).start()
+    try:
+        with browser.page() as page:
+            page.goto(server.url + "probe.html")
+            counts = page.evaluate("""async () => {
+                const { GLTFLoader } = await import('./vendor/three/addons/loaders/GLTFLoader.js');
+                const gltf = await new GLTFLoader().loadAsync('export.glb');
+                let meshes = 0, skinned = 0, targets = 0, joints = 0, names = [];
+                gltf.scene.traverse((o) => {
+                  if (o.isMesh) { meshes += 1; targets = o.morphTargetInfluences.length;
+                                  names = Object.keys(o.morphTargetDictionary); }
+                  if (o.isSkinnedMesh) { skinned += 1; joints = o.skeleton.bones.length; }
+                });
+                return { meshes, skinned, targets, joints, names, skins: gltf.parser.json.skins.length,
+                         animations: gltf.animations.length, tracks: gltf.animations[0].tracks.length,
+                         duration: gltf.animations[0].duration, map: !!gltf.scene.getObjectByName('mesh').material.map };
+            }""")
+            assert page.errors == []
+    finally:
+        server.stop()
+    assert counts["meshes"] == 1 and counts["skinned"] == 1 and counts["skins"] == 1 and counts["joints"] == 5
+    assert counts["targets"] == 52 and "jawOpen" in counts["names"] and counts["map"]
+    assert counts["animations"] == 1 and counts["tracks"] == 7
+    assert counts["duration"] == pytest.approx(5 / 25, abs=1e-6)  # six frames at the dataset's 25 fps
