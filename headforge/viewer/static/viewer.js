@@ -39,7 +39,7 @@ const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDraw
 renderer.setPixelRatio(query.get('size') ? 1 : devicePixelRatio);
 renderer.setSize(size, size);
 renderer.outputColorSpace = THREE.SRGBColorSpace;
-renderer.setClearColor(0xffffff, 1);
+renderer.setClearColor(query.get('bg') || '#ffffff', 1);
 const world = new THREE.Scene();
 const camera = new THREE.PerspectiveCamera(25, 1, 0.01, 100);
 world.add(new THREE.AmbientLight(0xffffff, 0.6));
@@ -269,6 +269,8 @@ Object.assign(viewer, {
   },
   setPlaying,
   draw,
+  // the clear colour (a CSS colour): two backgrounds tell the drawn pixels' coverage apart
+  background(colour) { renderer.setClearColor(colour, 1); draw(); },
 });
 setPlaying(query.get('play') !== '0');
 $('status').textContent = `${scene.kind}, ${scene.frames} frames at ${scene.fps} fps — drag to orbit, scroll to zoom`;
