@@ -1,4 +1,5 @@
-"""``headforge craft``: HeadCraft part 1 -- scan sets, registration, UV displacement maps."""
+"""``headforge craft``: HeadCraft -- scan sets, registration, UV displacement maps (part 1); the generative
+model over the maps, sampling, interpolation, animation and evaluation (part 2)."""
 
 from __future__ import annotations
 
@@ -76,3 +77,111 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
         typer.echo("error: no scan was registered", err=True)
         raise typer.Exit(1)
     typer.echo(f"{len(result.ok)} registered, {len(result.failed)} failed; maps in {output}")
+
+
+# ---------------------------------------------------------------- part 2: the generative model
+@app.command("train")
+def train(maps: Path = typer.Argument(..., help="map folder: headforge craft register output (or <key>.png maps)"),
+          output: Path = typer.Option(..., "-o", "--output", help="run folder (re-run the command to resume)"),
+          model: str = typer.Option("stylegan2", "--model", help="stylegan2, pca, vae, vqvae or all"),
+          preset: str = typer.Option("quick", help="quick (64 px, CPU) or paper (256 px, the paper's settings)"),
+          holdout: float = typer.Option(0.2, help="fraction of identities held out of training"),
+          steps: int | None = typer.Option(None, help="training steps (default: the preset's)"),
+          seed: int = typer.Option(0, help="random seed (split and initialisation)"),
+          settings: list[str] = typer.Option([], "--set", help="FIELD=VALUE config override, e.g. resolution=32")) -> None:
+    """Train HeadCraft's generative model (and baselines) over displacement maps."""
+    from headforge.craft.generative import train as T
+
+    try:
+        methods = list(T.METHODS) if model == "all" else [model]
+        for m in methods:
+            T.config_class(m)
+        opts = T.TrainOptions(preset=preset, holdout=holdout, seed=seed, steps=steps,
+                              settings=T.parse_settings(settings, methods))
+        T.prepare_run(maps, output, methods, opts, log=typer.echo)
+        for m in methods:
+            T.train_method(output, m, opts, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("sample")
+def sample(run: Path = typer.Argument(..., help="run folder of headforge craft train"),
+           n: int = typer.Option(8, "-n", help="number of samples"),
+           output: Path | None = typer.Option(None, "-o", "--output", help="output folder (default RUN/samples_<model>)"),
+           model: str = typer.Option("stylegan2", "--model", help="stylegan2, pca, vae, vqvae or bare"),
+           truncation: float = typer.Option(1.0, help="truncation psi (0: the mean map; the paper shows 0.7)"),
+           seed: int = typer.Option(0, help="sampling seed"),
+           identity: Path | None = typer.Option(None, help="params.json whose 'shape' the maps are applied to "
+                                                          "(default: sampled from the training identities)")) -> None:
+    """Sample maps and meshes (map on a head-model identity) with a front/side/back sheet."""
+    from headforge.craft.generative.sample import write_samples
+
+    try:
+        write_samples(run, model, output or run / f"samples_{model}", n, truncation, seed, identity, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("interpolate")
+def interpolate(run: Path = typer.Argument(..., help="run folder of headforge craft train"),
+                output: Path = typer.Option(..., "-o", "--output", help="output folder"),
+                model: str = typer.Option("stylegan2", "--model", help="stylegan2, vae or pca"),
+                seeds: tuple[int, int] = typer.Option((0, 1), help="the two latents' seeds"),
+                steps: int = typer.Option(6, help="maps along the line, ends included"),
+                truncation: float = typer.Option(1.0, help="truncation psi")) -> None:
+    """Maps and meshes between two latents (a strip of front/side/back renders)."""
+    from headforge.craft.generative.sample import interpolate as run_interpolate
+
+    try:
+        run_interpolate(run, model, output, steps, seeds, truncation, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("animate")
+def animate(map_path: Path = typer.Argument(..., help="a map.png (of craft sample or craft register; its params.json "
+                                                      "next to it gives the identity)"),
+            driving: Path = typer.Option(..., "--driving", help="tracked dataset (headforge track) whose expressions drive it"),
+            output: Path = typer.Option(..., "-o", "--output", help="output MP4"),
+            max_frames: int = typer.Option(150, help="frames to render"),
+            size: int = typer.Option(256, help="view size in pixels")) -> None:
+    """Drive a displacement map with a tracked video's expressions and poses (TBN transfer, App. B.1)."""
+    import json
+
+    from headforge.craft import uvmap
+    from headforge.craft.animate import animate as run_animate
+    from headforge.craft.pipeline import template_for
+
+    try:
+        meta_path = map_path.parent / "params.json"
+        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        head_model, levels = meta.get("head_model", "open-head"), meta.get("levels", 1)
+        tpl, duv = template_for(head_model, levels)
+        m = uvmap.read_map(map_path)
+        m = uvmap.postprocess_seams(m, uvmap.texel_islands(duv, m.shape[0]) >= 0, duv, blend=0)
+        run_animate(tpl, duv, m, meta.get("params"), driving, head_model, output, max_frames, size, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("eval")
+def evaluate(run: Path = typer.Argument(..., help="run folder of headforge craft train"),
+             heldout: Path = typer.Argument(..., help="map folder of held-out scans (headforge craft register output)"),
+             model: str = typer.Option("all", "--model", help="a trained model, bare, or all (every trained one + bare)"),
+             points: int = typer.Option(2048, help="points per mesh (the paper: 10K)"),
+             seeds: int = typer.Option(3, help="sampling seeds (mean and spread)"),
+             truncation: float = typer.Option(1.0, help="truncation psi"),
+             output: Path | None = typer.Option(None, "-o", "--output", help="JSON (+ .md table) to write (default RUN/eval.json)")) -> None:
+    """MMD-CD, COV-CD, 1-NNA and JSD on held-out registrations, and the memorisation check."""
+    from headforge.craft.generative import evaluate as E
+
+    try:
+        methods = None if model == "all" else [model]
+        result = E.evaluate(run, heldout, methods, tuple(range(seeds)), points, truncation, log=typer.echo)
+        path = output or run / "eval.json"
+        E.write(result, path)
+    except HeadforgeError as exc:
+        _fail(exc)
+    typer.echo(E.table(result))
+    typer.echo(f"written {path} and {path.with_suffix('.md')}")
