@@ -214,6 +214,24 @@ def test_a_point_avatar_exports_its_sequence_and_is_viewed_relightable(rendered,
             page.evaluate("window.viewer.draw()")
             turned = browser.canvas(page)
             assert (np.abs(turned.astype(int) - lit.astype(int)).max(-1) > 10).sum() > 50
+            # the neck slider: the server poses the points (PointPoser), the page draws them
+            page.locator("#joint-neck-y").fill("0.8")
+            page.wait_for_function("window.viewer.poses >= 1", timeout=60_000)
+            page.evaluate("window.viewer.draw()")
+            posed = browser.canvas(page)
+            assert (np.abs(posed.astype(int) - turned.astype(int)).max(-1) > 10).sum() > 50
             assert page.errors == []
+    finally:
+        server.stop()
+    poser = scene.handlers["pose"]
+    moved = np.frombuffer(poser({"frame": "0", "neck": "0,0.8,0", "expression": "0:1"}), "<f4").reshape(2, N, 3)
+    still = np.frombuffer(poser({"frame": "0"}), "<f4").reshape(2, N, 3)
+    assert np.abs(moved[0] - still[0]).max() > 0.005 and np.allclose(np.linalg.norm(still[1], axis=1), 1, atol=1e-3)
+    for bad in ({"frame": "8"}, {"frame": "0", "neck": "1,2"}, {"frame": "0", "expression": "9:1"}):
+        with pytest.raises(ValueError):
+            poser(bad)
+    server = ViewerServer(scene, port=0).start()
+    try:
+        assert get(server.url + "pose?frame=99")[0] == 400 and get(server.url + "x/pose")[0] == 404
     finally:
         server.stop()

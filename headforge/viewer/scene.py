@@ -8,7 +8,7 @@ looking down -z; :func:`headforge.export.gltf.camera_to_gltf`), metres. ``scene.
     title, fps, frames, resolution, K (3x3 px, the clip's camera, or null)
     expressions     expression names (mesh: the glb's morph targets, in order)
     relightable     the light-direction controls apply (point avatars: Lambert on the albedo)
-    files           {"glb": "avatar.glb"} or {"points": "points.bin"}
+    files           {"glb": "avatar.glb"} or {"points": "points.bin", "pose": "pose"} (:class:`PointPoser`)
 
 ``points.bin`` (little endian): positions (T, N, 3) float32, normals (T, N, 3) float32, albedo
 (N, 3) uint8, radius (N,) float32 metres; with ``points`` = N in the manifest.
@@ -34,6 +34,65 @@ class Scene:
 
     manifest: dict
     files: dict[str, bytes] = field(default_factory=dict)
+    # URL name -> answer(query: {name: value}) -> bytes, computed on GET (point avatars' poses);
+    # raises ValueError for a bad query
+    handlers: dict = field(default_factory=dict)
+
+
+class PointPoser:
+    """The viewer's sliders on a point avatar: ``pose?frame=F&expression=i:v,j:w&jaw=x,y,z&neck=
+    x,y,z&eyes=x,y,z`` poses frame F of the driving ``sequence`` with expression i set to v (...) and
+    joint rotations (Euler angles in radians, applied R_y R_x R_z as the page's sliders; eyes: both)
+    through the avatar's ``geometry``, and answers positions (N, 3) then normals (N, 3), float32,
+    glTF world. Missing fields keep the frame's values."""
+
+    JOINTS = {"jaw": ("jaw_pose",), "neck": ("neck_pose",), "eyes": ("eye_left_pose", "eye_right_pose")}
+
+    def __init__(self, avatar, sequence: dict):
+        import threading
+
+        self.avatar, self.sequence = avatar, sequence
+        self.lock = threading.Lock()  # one pose at a time: the server answers on several threads
+
+    def __call__(self, query: dict[str, str]) -> bytes:
+        import torch
+        from scipy.spatial.transform import Rotation
+
+        from headforge.export.gltf import OPENGL_FROM_OPENCV
+
+        T = int(self.sequence["translation"].shape[0])
+        frame = int(query.get("frame", "0"))
+        if not 0 <= frame < T:
+            raise ValueError(f"frame must be in 0..{T - 1}")
+        params = {k: v[frame:frame + 1].clone() for k, v in self.sequence.items()}
+
+        def floats(name: str, count: int) -> torch.Tensor:
+            values = [float(x) for x in query[name].split(",")]
+            if len(values) != count or not all(np.isfinite(values)):
+                raise ValueError(f"{name} needs {count} finite numbers")
+            return torch.tensor([values], dtype=torch.float32)
+
+        if query.get("expression"):
+            E = params["expression"].shape[1]
+            for pair in query["expression"].split(","):
+                index, value = pair.split(":")
+                if not 0 <= int(index) < E or not np.isfinite(float(value)):
+                    raise ValueError(f"expression entries are index:value with index in 0..{E - 1}")
+                params["expression"][0, int(index)] = float(value)
+        tracked = {}
+        for name, keys in self.JOINTS.items():
+            if name in query:
+                x, y, z = floats(name, 3)[0].tolist()
+                rotvec = torch.tensor(Rotation.from_euler("YXZ", [y, x, z]).as_rotvec()[None], dtype=torch.float32)
+                tracked.update({k: rotvec for k in keys})
+        if tracked:  # slider angles are the rotations the skinning sees: the avatar's raw parameters of them
+            raw = self.avatar.params_from_tracking({**params, **tracked})
+            params.update({k: raw[k] for k in tracked})
+        with self.lock, torch.no_grad():
+            g = self.avatar.geometry(params)
+        pos = g.vertices[0].numpy() @ OPENGL_FROM_OPENCV
+        nrm = g.normals[0].numpy() @ OPENGL_FROM_OPENCV
+        return pos.astype("<f4").tobytes() + nrm.astype("<f4").tobytes()
 
 
 def build_scene(path: str | Path, texture_size: int = 512, max_frames: int = MAX_FRAMES) -> Scene:
@@ -87,7 +146,8 @@ def run_scene(run: Path, texture_size: int, max_frames: int) -> Scene:
             clouds = [read_point_ply(p) for p in frames]
             blob, n = _points_blob(clouds)
             return Scene({**manifest, "kind": "points", "relightable": True, "points": n,
-                          "files": {"points": "points.bin"}}, {"points.bin": blob})
+                          "files": {"points": "points.bin", "pose": "pose"}}, {"points.bin": blob},
+                         {"pose": PointPoser(r.avatar, seq)})
     raise HeadforgeError(f"the viewer cannot show {r.method.name} avatars: they export {', '.join(formats) or 'nothing'}"
                          f" (it needs an animatable glb or a relightable PLY sequence)")
 

@@ -1,7 +1,7 @@
 """The viewer's HTTP server: serves the page, the vendored three.js files and one scene's
 generated files, from memory, read-only (GET and HEAD only). URLs are looked up by exact name
-in a fixed table built at start, so no path reaches the file system (no traversal). Binds to
-127.0.0.1 unless told otherwise."""
+in a fixed table built at start (and the scene's computed answers, e.g. a point avatar's pose),
+so no path reaches the file system (no traversal). Binds to 127.0.0.1 unless told otherwise."""
 
 from __future__ import annotations
 
@@ -35,9 +35,20 @@ def site(scene: Scene) -> dict[str, tuple[bytes, str]]:
 
 class _Handler(BaseHTTPRequestHandler):
     table: dict[str, tuple[bytes, str]] = {}
+    handlers: dict = {}
 
     def _lookup(self) -> tuple[bytes, str] | None:
-        return self.table.get(self.path.split("?", 1)[0].split("#", 1)[0])
+        from urllib.parse import parse_qsl, urlsplit
+
+        url = urlsplit(self.path)
+        handler = self.handlers.get(url.path.lstrip("/"))
+        if handler is not None and url.path.count("/") == 1:
+            try:
+                return handler(dict(parse_qsl(url.query[:100_000]))), TYPES[".bin"]
+            except (ValueError, KeyError) as exc:
+                self.send_error(HTTPStatus.BAD_REQUEST, str(exc)[:200])
+                return b"", ""
+        return self.table.get(url.path)
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's names)
         self._answer(body=True)
@@ -51,6 +62,8 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_error(HTTPStatus.NOT_FOUND)
             return
         data, kind = found
+        if not kind:  # answered with an error already
+            return
         self.send_response(HTTPStatus.OK)
         self.send_header("Content-Type", kind)
         self.send_header("Content-Length", str(len(data)))
@@ -75,7 +88,7 @@ class ViewerServer:
     def __init__(self, scene: Scene, host: str = "127.0.0.1", port: int = 8765):
         if not 0 <= port <= 65535:
             raise HeadforgeError(f"--port must be in 0..65535, got {port}")
-        handler = type("Handler", (_Handler,), {"table": site(scene)})
+        handler = type("Handler", (_Handler,), {"table": site(scene), "handlers": dict(scene.handlers)})
         try:
             self.httpd = ThreadingHTTPServer((host, port), handler)
         except OSError as exc:

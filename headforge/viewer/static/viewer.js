@@ -135,8 +135,10 @@ function showTime(t) {
   if (points && scene.frames > 0) {
     const { positions, normals, N } = points.userData;
     const f = Math.min(scene.frames - 1, Math.max(0, Math.round(t * scene.fps)));
-    points.geometry.attributes.position.array.set(positions.subarray(f * N * 3, (f + 1) * N * 3));
-    points.geometry.attributes.normal.array.set(normals.subarray(f * N * 3, (f + 1) * N * 3));
+    const posed = points.userData.posed;  // the sliders' pose of this frame, from the server
+    const use = posed && posed.frame === f && !playing;
+    points.geometry.attributes.position.array.set(use ? posed.positions : positions.subarray(f * N * 3, (f + 1) * N * 3));
+    points.geometry.attributes.normal.array.set(use ? posed.normals : normals.subarray(f * N * 3, (f + 1) * N * 3));
     points.geometry.attributes.position.needsUpdate = true;
     points.geometry.attributes.normal.needsUpdate = true;
   }
@@ -164,31 +166,60 @@ let time = 0;
 function setPlaying(on) {
   playing = on && scene.frames > 1;
   $('play').textContent = playing ? 'pause' : 'play';
-  if (playing) { manual.morph.clear(); manual.joints.clear(); }
+  if (playing) { manual.morph.clear(); manual.joints.clear(); if (points) points.userData.posed = null; }
 }
 $('play').addEventListener('click', () => setPlaying(!playing));
-frameInput.addEventListener('input', () => { setPlaying(false); time = +frameInput.value / scene.fps; });
+frameInput.addEventListener('input', () => {
+  setPlaying(false); time = +frameInput.value / scene.fps;
+  if (manual.morph.size || manual.joints.size) requestPose();
+});
+
+// point avatars: the server poses the points for the sliders (PointPoser); one request at a time
+const posable = !!(points && scene.files.pose);
+let poseBusy = false, posePending = false;
+async function requestPose() {
+  if (!posable) return;
+  if (poseBusy) { posePending = true; return; }
+  poseBusy = true;
+  try {
+    const f = Math.round(time * scene.fps);
+    const q = new URLSearchParams({ frame: String(f) });
+    q.set('expression', [...manual.morph].map(([i, v]) => i + ':' + v).join(','));
+    for (const joint of ['jaw', 'neck', 'eyes']) {
+      if ([...manual.joints.keys()].some((k) => k.startsWith(joint + '.'))) {
+        q.set(joint, ['x', 'y', 'z'].map((a) => manual.joints.get(joint + '.' + a) || 0).join(','));
+      }
+    }
+    const answer = await fetch(scene.files.pose + '?' + q);
+    if (!answer.ok) throw new Error('pose: ' + answer.status + ' ' + answer.statusText);
+    const buf = await answer.arrayBuffer();
+    const N = scene.points;
+    points.userData.posed = { frame: f, positions: new Float32Array(buf, 0, N * 3), normals: new Float32Array(buf, N * 12, N * 3) };
+    viewer.poses = (viewer.poses || 0) + 1;
+  } finally {
+    poseBusy = false;
+  }
+  if (posePending) { posePending = false; requestPose(); }
+}
 
 const expressionSliders = new Map();
-if (mesh && mesh.morphTargetDictionary) {
-  for (const [name, index] of Object.entries(mesh.morphTargetDictionary)) {
-    expressionSliders.set(index, slider($('expression-panel'), 'expr-' + name, name, -1, 1, 0, (v) => {
-      setPlaying(false); manual.morph.set(index, v);
-    }));
-  }
-} else {
-  $('expression-panel').innerHTML += '<p>This scene has no expression targets (a point avatar plays its driving ' +
-    'sequence; expressions are sliders on mesh avatars).</p>';
+const expressionNames = mesh && mesh.morphTargetDictionary ? Object.entries(mesh.morphTargetDictionary)
+  : posable ? scene.expressions.map((name, i) => [name, i]) : [];
+for (const [name, index] of expressionNames) {
+  expressionSliders.set(index, slider($('expression-panel'), 'expr-' + name, name, -1, 1, 0, (v) => {
+    setPlaying(false); manual.morph.set(index, v); requestPose();
+  }));
 }
+if (!expressionNames.length) $('expression-panel').innerHTML += '<p>This scene has no expressions.</p>';
 const jointSliders = new Map();
 const JOINT_CONTROLS = [['jaw', 'x', 'jaw open', -0.1, 0.6], ['neck', 'x', 'neck pitch', -0.8, 0.8],
   ['neck', 'y', 'neck yaw', -1.0, 1.0], ['neck', 'z', 'neck roll', -0.6, 0.6],
   ['eyes', 'y', 'eyes yaw', -0.6, 0.6], ['eyes', 'x', 'eyes pitch', -0.5, 0.5]];
-if (bones.jaw) {
+if (bones.jaw || posable) {
   for (const [joint, axis, label, min, max] of JOINT_CONTROLS) {
     const key = joint + '.' + axis;
     jointSliders.set(key, slider($('joint-panel'), 'joint-' + joint + '-' + axis, label, min, max, 0, (v) => {
-      setPlaying(false); manual.joints.set(key, v);
+      setPlaying(false); manual.joints.set(key, v); requestPose();
     }));
   }
 } else {
