@@ -12,12 +12,21 @@ Per-frame fitting (:func:`fit_frames`): the networks frozen, each batch of frame
 Adam on its expression, poses and translation for ``steps`` steps of the method's ``align``
 energies, then ``photometric_steps`` of ``align_rgb``. Frames are independent once the networks
 are frozen, so this is exact per-frame optimisation.
+
+Over processes (``torchrun``, :mod:`headforge.distributed`): every rank draws the same global
+batch and trains on its share (:func:`backward_step`), the gradients of all parameters are
+averaged (the per-frame ones come from the rank holding the frame), so every rank keeps the
+same weights; per-frame fitting deals its batches of frames out to the ranks and gathers the
+results; rank 0 alone writes the run folder (checkpoints, logs, pictures, scores) and the
+other ranks' hooks write into a scratch folder. One process runs exactly the code it ran before.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +37,7 @@ import torch
 from headforge.avatars.base import Avatar, Method, Stage
 from headforge.avatars.frames import FrameData
 from headforge.avatars.run import RunAssets, load_weights, read_info, run_info, save_checkpoint
+from headforge import distributed
 from headforge.errors import HeadforgeError
 
 TTO_CHECKPOINT_FRAMES = 64  # held-out frames test-time fitted between two checkpoints (~3 min on 2 CPU cores)
@@ -61,10 +71,12 @@ def fit_frames(method: Method, avatar: Avatar, data: FrameData, config, steps: i
     """Fit the frame parameters of ``data``'s frames (all, or positions ``rows``) with the
     avatar's own parameters frozen (see the module docstring)."""
     rows = torch.arange(len(data)) if rows is None else rows
+    chunks = list(rows.split(4 * config.batch))
+    mine = distributed.owned(len(chunks))  # all of them in one process
     was = [p.requires_grad for p in avatar.parameters()]
     avatar.requires_grad_(False)
     try:
-        for chunk in rows.split(4 * config.batch):
+        for chunk in (chunks[i] for i in mine):
             batch = data.batch(chunk)
             idx = batch["index"]
             params = {k: v.detach()[idx].clone().requires_grad_(True) for k, v in avatar.frames.items()}
@@ -79,9 +91,33 @@ def fit_frames(method: Method, avatar: Avatar, data: FrameData, config, steps: i
             with torch.no_grad():
                 for k, p in params.items():
                     avatar.frames[k][idx] = p.detach()
+        if distributed.active():  # every rank gets the frames the others fitted
+            owner = torch.cat([torch.full((len(c),), i in set(mine)) for i, c in enumerate(chunks)])
+            distributed.merge_rows(avatar.frames, data.index[torch.cat(chunks)], owner.to(data.index.device))
     finally:
         for p, flag in zip(avatar.parameters(), was):
             p.requires_grad_(flag)
+
+
+def backward_step(method: Method, avatar: Avatar, optimisers: dict, data: FrameData, rows: torch.Tensor, config,
+                  stage: str) -> tuple[torch.Tensor, dict]:
+    """One training step's energies and gradients for the global batch ``rows`` (positions in
+    ``data``): the optimisers' gradients zeroed, the method's ``losses`` of ``stage``, backward.
+    Under torch.distributed each rank takes its share of ``rows`` and the gradients are averaged
+    over the ranks (the single-process gradient of the global batch for energies that are means
+    over its frames), boolean buffers OR-ed (:func:`headforge.distributed.combine_flags`), and the
+    returned (loss, terms) are the ranks' means."""
+    terms = method.losses(avatar, data.batch(distributed.shard(rows)), data.K, config, stage)
+    loss = sum(terms.values())
+    for o in optimisers.values():
+        o.zero_grad()
+    loss.backward()
+    if distributed.active():
+        distributed.average_gradients(list(avatar.parameters()))
+        distributed.combine_flags(avatar)
+        terms = distributed.mean_terms(terms)
+        loss = sum(terms.values())
+    return loss, terms
 
 
 @torch.no_grad()
@@ -112,15 +148,16 @@ def score(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path
     return summarise(arrays), arrays
 
 
-def validate(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path | None = None) -> dict:
+def validate(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path | None = None) -> dict | None:
     """In-training validation: a short test-time fitting (``val_tto_steps``) of ``data``'s
     frames, the protocol's image scores, and the frames' parameters restored (it counts in the
-    training time, so it does not take the final score's ``tto_steps``)."""
+    training time, so it does not take the final score's ``tto_steps``). Under torch.distributed
+    the ranks share the fitting and rank 0 alone scores (None elsewhere)."""
     idx = data.index
     saved = {k: v.detach()[idx].clone() for k, v in avatar.frames.items()}
     try:
         fit_frames(method, avatar, data, config, config.val_tto_steps, config.tto_photometric_steps)
-        return score(method, avatar, data, config, out_dir)[0]
+        return score(method, avatar, data, config, out_dir)[0] if distributed.is_main() else None
     finally:
         with torch.no_grad():
             for k, v in saved.items():
@@ -147,7 +184,8 @@ class TrainingContext:
 
     def checkpoint(self) -> None:
         self.state.update(iteration=self.iteration, seconds=time.perf_counter() - self.start)
-        save_checkpoint(self.run, self.avatar, self.optimisers, self.state)
+        if distributed.is_main():  # every rank holds the same weights and frames
+            save_checkpoint(self.run, self.avatar, self.optimisers, self.state)
 
     def fit_frames(self, data: FrameData, steps: int, photometric_steps: int = 0, rows: torch.Tensor | None = None) -> None:
         fit_frames(self.method, self.avatar, data, self.config, steps, photometric_steps, rows)
@@ -163,11 +201,21 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
         device: torch.device | str = "cpu") -> dict:
     """Train ``method`` (a registered name or instance) on ``dataset`` into the run folder
     ``run``, on ``device``; resumes from RUN's checkpoint when its settings and data match (also
-    on another device: checkpoints are written from host copies). Returns metrics.json's figures."""
+    on another device: checkpoints are written from host copies). Returns metrics.json's figures.
+    Inside a torch.distributed process group (torchrun) the ranks train together (module doc);
+    ``run`` must then be on a file system every rank sees, and ``config.batch`` a multiple of
+    the number of processes."""
     from headforge.metrics.protocol import TrackedHead
 
     method = _resolve(method)
     dataset, run = Path(dataset), Path(run)
+    main = distributed.is_main()
+    if distributed.active():
+        if config.batch % distributed.world_size():
+            raise HeadforgeError(f"batch {config.batch} cannot be split over {distributed.world_size()} processes: "
+                                 f"--set batch=N with N a multiple of {distributed.world_size()}")
+        if not main:
+            log, progress = (lambda message: None), None
     torch.manual_seed(config.seed)
     assets = RunAssets.from_dataset(dataset)  # reads and checks the dataset first
     info = run_info(method.name, config, dataset, assets)
@@ -183,11 +231,12 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
     head = TrackedHead(assets.head_data(), assets.tracking["shape"])
     train = FrameData(dataset, "train", config.resolution, head).to(device)
     val_all = FrameData(dataset, "val", config.resolution, head).to(device)
-    run.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        assets.save(run)
-        (run / "run.json").write_text(json.dumps(info, indent=1))
-    (run / "val").mkdir(exist_ok=True)
+    if main:
+        run.mkdir(parents=True, exist_ok=True)
+        if not resume:
+            assets.save(run)
+            (run / "run.json").write_text(json.dumps(info, indent=1))
+        (run / "val").mkdir(exist_ok=True)
     avatar.to(device)
     state = {"iteration": 0, "seconds": 0.0}
     if resume:  # the weights first: a method's parameters may have changed size since build
@@ -198,29 +247,45 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
             optimisers[k].load_state_dict(sd)
         state = json.loads((run / "state.json").read_text())
         for name in ("losses.csv", "val.csv"):  # rows a killed run wrote after its last checkpoint
-            _truncate_log(run / name, state["iteration"])
+            if main:
+                _truncate_log(run / name, state["iteration"])
         log(f"resuming {run} at iteration {state['iteration']}")
-    else:
+    elif main:
         for name in ("losses.csv", "val.csv"):
             (run / name).unlink(missing_ok=True)
+    distributed.barrier()  # the run folder is set up before any rank writes into it
     stages = method.stages(config)
-    total = sum(s.iterations for s in stages)
     gen = torch.Generator().manual_seed(config.seed)
     for _ in range(state["iteration"]):  # a resumed run draws the batches the killed one would have
         torch.randperm(len(train), generator=gen)
     start = time.perf_counter() - state["seconds"]
-    ctx = TrainingContext(run, method, avatar, config, optimisers, train, val_all, state, log, start, state["iteration"])
-    loss_file = (run / "losses.csv").open("a")
+    # ranks other than 0 give the hooks a scratch folder: only rank 0 writes into the run folder
+    scratch = None if main else Path(tempfile.mkdtemp(prefix=f"headforge-rank{distributed.rank()}-"))
+    ctx = TrainingContext(run if main else scratch, method, avatar, config, optimisers, train, val_all, state, log,
+                          start, state["iteration"])
+    try:
+        metrics = _train_and_score(ctx, run, dataset, stages, gen, head, assets, device, progress)
+    finally:
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+    return distributed.broadcast_object(metrics)
+
+
+def _train_and_score(ctx: TrainingContext, run: Path, dataset: Path, stages: list[Stage], gen: torch.Generator, head,
+                     assets: RunAssets, device, progress) -> dict:
+    """:func:`fit`'s training loop, the held-out frames' fitting and the scores (rank 0 alone
+    writes; ``run`` is the run folder, ``ctx.run`` a scratch folder on the other ranks)."""
+    method, avatar, config, train, val_all = ctx.method, ctx.avatar, ctx.config, ctx.train, ctx.val
+    state, log, start = ctx.state, ctx.log, ctx.start
+    total = sum(s.iterations for s in stages)
+    main = distributed.is_main()
+    loss_file = (run / "losses.csv").open("a") if main else None
     while ctx.iteration < total:
         method.before_iteration(ctx)
         it = ctx.iteration
         stage = stage_at(stages, it)
         rows = torch.randperm(len(train), generator=gen)[: config.batch]
-        terms = method.losses(avatar, train.batch(rows), train.K, config, stage.name)
-        loss = sum(terms.values())
-        for o in ctx.optimisers.values():
-            o.zero_grad()
-        loss.backward()
+        loss, terms = backward_step(method, avatar, ctx.optimisers, train, rows, config, stage.name)
         factor = lr_factor(it, config)
         for name in stage.optimisers:
             for group in ctx.optimisers[name].param_groups:
@@ -229,22 +294,26 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
         ctx.iteration = it = it + 1
         if method.after_iteration(ctx):
             ctx.optimisers = method.optimisers(avatar, config)
-        loss_file.write(f"{it},{stage.name},{time.perf_counter() - start:.1f},{loss.item():.7g},"
-                        + ",".join(f"{k}={v.item():.7g}" for k, v in terms.items()) + "\n")
+        if main:
+            loss_file.write(f"{it},{stage.name},{time.perf_counter() - start:.1f},{loss.item():.7g},"
+                            + ",".join(f"{k}={v.item():.7g}" for k, v in terms.items()) + "\n")
         if progress:
             progress()
         if it % config.val_every == 0 or it == total:
             sub = torch.linspace(0, len(val_all) - 1, min(config.val_frames, len(val_all))).long()
-            scores = validate(method, avatar, val_all.subset(sub), config, run / "val")
-            with (run / "val.csv").open("a") as f:
-                f.write(f"{it},{time.perf_counter() - start:.1f},{scores['psnr']:.4f},{scores['ssim']:.4f}\n")
-            log(f"iteration {it} ({stage.name}): loss {loss.item():.4f}, val PSNR {scores['psnr']:.2f} dB "
-                f"({len(sub)} frames, after {config.val_tto_steps} test-time fitting steps)")
+            scores = validate(method, avatar, val_all.subset(sub), config, run / "val" if main else None)
+            if main:
+                with (run / "val.csv").open("a") as f:
+                    f.write(f"{it},{time.perf_counter() - start:.1f},{scores['psnr']:.4f},{scores['ssim']:.4f}\n")
+                log(f"iteration {it} ({stage.name}): loss {loss.item():.4f}, val PSNR {scores['psnr']:.2f} dB "
+                    f"({len(sub)} frames, after {config.val_tto_steps} test-time fitting steps)")
         if it % config.checkpoint_every == 0 or it == total:
-            loss_file.flush()
+            if main:
+                loss_file.flush()
             ctx.checkpoint()
-    loss_file.close()
-    plot_progress(run)
+    if main:
+        loss_file.close()
+        plot_progress(run)
     # After training: the method's hook, then the test-time fitting of the held-out frames, which
     # checkpoints every TTO_CHECKPOINT_FRAMES frames ("tested" in state.json).
     if "tested" not in state:
@@ -261,6 +330,8 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
         state["tested"] = int(chunk[-1]) + 1
         ctx.checkpoint()
         log(f"test-time fitted {state['tested']}/{len(val_all)} validation frames")
+    if not main:
+        return {}  # rank 0 scores and writes; fit() hands its figures to every rank
     summary, per_frame = score(method, avatar, val_all, config, run / "val", max_images=8, landmarks=True)
     write_worst_frames(method, avatar, val_all, config, per_frame, run / "val_worst.png")
     metrics = {"method": method.name, "train_minutes": round(state["train_seconds"] / 60, 2),

@@ -36,16 +36,26 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
         set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE",
                                                  help="override a config field, e.g. --set tex_grid=256 (repeatable)")) -> None:
     """Train an avatar (nha: Neural Head Avatars -- geometry MLP offsets + neural texture on the tracked
-    head model; pointavatar: PointAvatar -- a deformable point cloud with albedo x learned shading)."""
+    head model; pointavatar: PointAvatar -- a deformable point cloud with albedo x learned shading).
+    Over several processes: ``torchrun --nproc-per-node N -m headforge.cli fit ...`` (each rank trains
+    on its share of every batch; gloo on the CPU, NCCL on CUDA GPUs, one GPU per process)."""
+    from headforge import distributed
     from headforge.avatars import registry
     from headforge.avatars.engine import fit as run_fit
-    from headforge.devices import resolve_device
 
     m = registry.get(method)
     config = make_config(m, preset, iterations, resolution, set_ or [])
-    target = resolve_device(device)
-    with Bars() as bars:
-        metrics = run_fit(m, dataset, output, config, log=progress,
-                          progress=bars.factory("training", config.total_iters), device=target)
-    console.print(f"run written to {output}/ (checkpoint, progress.png, val/, val_worst.png, metrics.json)")
-    print(json.dumps(metrics))
+    target = distributed.init_from_environment(device)  # the device as asked when not under torchrun
+    try:
+        if distributed.is_main():
+            if distributed.active():
+                progress(f"training over {distributed.world_size()} processes ({target} on rank 0)")
+            with Bars() as bars:
+                metrics = run_fit(m, dataset, output, config, log=progress,
+                                  progress=bars.factory("training", config.total_iters), device=target)
+            console.print(f"run written to {output}/ (checkpoint, progress.png, val/, val_worst.png, metrics.json)")
+            print(json.dumps(metrics))
+        else:
+            run_fit(m, dataset, output, config, log=progress, device=target)
+    finally:
+        distributed.shutdown()

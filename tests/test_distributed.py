@@ -1,0 +1,175 @@
+"""Avatar training over processes (headforge.distributed, gloo on the CPU): a 2-process step's
+network gradients equal the single-process gradients of the same global batch, and a 2-process
+run resumed from a single-process checkpoint follows the single-process run.
+
+The processes are spawned with torch.multiprocessing and meet through a file (no ports). NHA's
+quick preset at the tiny sizes of tests/data/make_nha_reference.py, with two of its terms off:
+``surface`` compares the first two frames of a batch (a pair split over ranks is not compared)
+and ``rgb`` is normalised by the batch's pixel count (per rank under DDP); every other term is a
+mean over the batch's frames, for which DDP's averaged gradient is the global batch's gradient.
+docs/batch_and_distributed.md says what this means for a run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parent / "data"))
+
+WORLD = 2
+STAGES = {"geometry": {"w_surface": 0.0}, "joint": {"w_surface": 0.0, "w_rgb": 0.0}}
+
+
+def _config(settings: dict):
+    from make_nha_reference import reference_settings
+
+    from headforge.avatars.nha.config import NHAConfig
+
+    config = NHAConfig.quick()
+    for k, v in (reference_settings() | settings).items():
+        setattr(config, k, v)
+    return config
+
+
+def _join(rank: int, init_file: str) -> None:
+    import torch.distributed as dist
+
+    from make_nha_reference import use_tiny_head
+
+    torch.set_num_threads(1)
+    use_tiny_head()
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=WORLD)
+
+
+def _gradients(dataset: Path, stage: str, settings: dict, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The gradients of one training step of ``stage`` on the global batch ``rows``."""
+    from headforge.avatars.engine import backward_step
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.nha.method import NHAMethod
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+
+    config = _config(settings)
+    torch.manual_seed(config.seed)  # as the engine seeds before building: the same initial weights
+    assets = RunAssets.from_dataset(dataset)
+    method = NHAMethod()
+    avatar = method.build(assets, config)
+    train = FrameData(dataset, "train", config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    backward_step(method, avatar, method.optimisers(avatar, config), train, rows, config, stage)
+    return {n: p.grad.detach().clone() for n, p in avatar.named_parameters() if p.grad is not None}
+
+
+def _gradient_worker(rank: int, init_file: str, dataset: Path, rows: torch.Tensor, out: Path) -> None:
+    import torch.distributed as dist
+
+    _join(rank, init_file)
+    try:
+        grads = {stage: _gradients(dataset, stage, settings | {"batch": len(rows)}, rows)
+                 for stage, settings in STAGES.items()}
+        if rank == 0:
+            torch.save(grads, out)
+    finally:
+        dist.destroy_process_group()
+
+
+def _differs(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Largest difference relative to the tensor's largest magnitude."""
+    return float((a - b).abs().max() / b.abs().max().clamp(min=1e-30))
+
+
+def test_two_process_gradients_equal_the_single_process_gradients(rendered, tiny_head, tmp_path):
+    import torch.multiprocessing as mp
+
+    rows = torch.tensor([3, 0, 4, 1])  # a global batch of 4 training frames: 2 per rank
+    out = tmp_path / "ddp_grads.pt"
+    mp.spawn(_gradient_worker, args=(str(tmp_path / "init"), rendered, rows, out), nprocs=WORLD)
+    ddp = torch.load(out)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for stage, settings in STAGES.items():
+            single = _gradients(rendered, stage, settings | {"batch": 4}, rows)
+            half = _gradients(rendered, stage, settings | {"batch": 2}, rows[:2])  # what rank 0 alone computes
+            assert ddp[stage].keys() == single.keys()
+            networks = [n for n in single if not n.startswith("frames.")]
+            assert any(n.startswith("geometry_net.") for n in networks)
+            if stage == "joint":
+                assert any(n.startswith("texture_net.") for n in networks)
+            for name, g in single.items():
+                assert _differs(ddp[stage][name], g) < 1e-5, (stage, name, _differs(ddp[stage][name], g))
+            # not a comparison that cannot fail: one rank's share alone gives other gradients
+            assert max(_differs(half[n], single[n]) for n in networks) > 1e-2
+            # a frame's parameters get their gradient from the rank holding the frame, scaled as
+            # the global batch's mean
+            expression = ddp[stage]["frames.expression"]
+            assert expression[rows].abs().sum(1).gt(0).all() and expression[[2]].abs().sum() == 0
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit_worker(rank: int, init_file: str, dataset: Path, run: Path, settings: dict) -> None:
+    import torch.distributed as dist
+
+    from headforge.avatars.engine import fit
+
+    _join(rank, init_file)
+    try:
+        metrics = fit("nha", dataset, run, _config(settings), log=lambda m: None)
+        assert metrics["method"] == "nha"  # every rank gets rank 0's figures
+    finally:
+        dist.destroy_process_group()
+
+
+def _losses(run: Path) -> list[list[str]]:
+    return list(csv.reader((run / "losses.csv").read_text().splitlines()))
+
+
+@pytest.mark.slow  # three tiny runs, one of them on two processes: ~1 min on 2 quiet cores
+def test_a_two_process_run_resumes_a_checkpoint_and_follows_the_single_process_run(tiny_head, tmp_path, interrupt_after):
+    """A run killed in its third iteration (checkpoint at 2), resumed by 2 processes, ends like
+    the same run on one process: the same losses, weights and fitted frames (the alignment after
+    the geometry stage and the test-time fitting shared by the ranks); rank 0 alone wrote."""
+    import torch.multiprocessing as mp
+    from safetensors.torch import load_file
+
+    from conftest import write_rendered_dataset
+    from headforge.avatars.engine import fit
+
+    # 12 training frames: per-frame fitting deals two batches of 8 and 4 frames to the two ranks
+    dataset = write_rendered_dataset(tmp_path / "data", tiny_head, frames=16, val=4)
+    settings = STAGES["geometry"] | {"w_rgb": 0.0, "batch": 2, "geometry_iters": 4, "texture_iters": 2, "joint_iters": 4,
+                                     "checkpoint_every": 2, "val_every": 5, "tto_steps": 2}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fit("nha", dataset, tmp_path / "single", _config(settings), log=lambda m: None)
+        with pytest.raises(KeyboardInterrupt):
+            fit("nha", dataset, tmp_path / "ddp", _config(settings), log=lambda m: None, progress=interrupt_after(3))
+    finally:
+        torch.set_num_threads(threads)
+    mp.spawn(_fit_worker, args=(str(tmp_path / "init"), dataset, tmp_path / "ddp", settings), nprocs=WORLD)
+
+    # The step's arithmetic is the same (the test above); float rounding in a different order,
+    # which Adam's normalised steps amplify where a gradient is near zero, leaves ~1e-3 drift.
+    single, ddp = _losses(tmp_path / "single"), _losses(tmp_path / "ddp")
+    assert [r[0] for r in ddp] == [str(i) for i in range(1, 11)]  # written once, by rank 0
+    for a, b in zip(single, ddp):
+        assert a[1] == b[1] and float(b[3]) == pytest.approx(float(a[3]), rel=1e-2), (a, b)
+    want, got = load_file(tmp_path / "single" / "checkpoint.safetensors"), load_file(tmp_path / "ddp" / "checkpoint.safetensors")
+    assert want.keys() == got.keys()
+    for name in want:
+        if not torch.isfinite(want[name]).all() or not want[name].is_floating_point():
+            assert torch.equal(got[name], want[name]), name
+        elif want[name].abs().max() > 0:
+            drift = float((got[name] - want[name]).norm() / want[name].norm())
+            assert drift < 2e-2, (name, drift)
+    a, b = (json.loads((tmp_path / r / "metrics.json").read_text()) for r in ("single", "ddp"))
+    assert b["val_psnr"] == pytest.approx(a["val_psnr"], abs=0.02)
+    assert (tmp_path / "ddp" / "progress.png").is_file() and (tmp_path / "ddp" / "val_worst.png").is_file()
