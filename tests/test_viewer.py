@@ -15,6 +15,8 @@ import torch
 
 from headforge.errors import HeadforgeError
 
+pygltflib = pytest.importorskip("pygltflib", reason="pygltflib is a dev dependency (pip install -e '.[dev]')")
+
 
 def get(url: str, method: str = "GET") -> tuple[int, bytes]:
     try:
@@ -79,13 +81,25 @@ def test_bad_input_is_a_one_line_error(served, open_head_nha_run, tmp_path):
         assert res.exit_code == 1 and isinstance(res.exception, (HeadforgeError, SystemExit)), res.output
 
 
-def test_a_tracked_dataset_is_viewed_as_its_tracked_head(open_head_nha_run):
+def test_a_tracked_dataset_and_a_headcraft_map_are_viewed_as_meshes(open_head_nha_run, tmp_path):
+    import trimesh
+
     from headforge.viewer.scene import build_scene
 
     data = open_head_nha_run.parent / "data"
     scene = build_scene(data)
-    assert scene.manifest["kind"] == "mesh" and scene.manifest["frames"] == 6
-    assert scene.files["avatar.glb"][:4] == b"glTF"
+    assert scene.manifest["kind"] == "mesh" and scene.manifest["frames"] == 6 and scene.manifest["K"] is not None
+    g = pygltflib.GLTF2.load_from_bytes(scene.files["avatar.glb"])
+    assert len(g.animations) == 1 and len(g.meshes[0].primitives[0].targets) == 52 and len(g.skins) == 1
+    # a HeadCraft map folder: its registered mesh, static
+    (tmp_path / "map").mkdir()
+    trimesh.creation.icosphere(subdivisions=2, radius=0.1).export(tmp_path / "map" / "registered.ply")
+    scene = build_scene(tmp_path / "map")
+    g = pygltflib.GLTF2.load_from_bytes(scene.files["avatar.glb"])
+    assert scene.manifest["frames"] == 0 and not g.animations and g.accessors[0].count == 162
+    (tmp_path / "map" / "registered.ply").write_text("not a mesh")
+    with pytest.raises(HeadforgeError, match="registered.ply"):
+        build_scene(tmp_path / "map")
 
 
 # ---- in the browser ----------------------------------------------------------------------------------
