@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -24,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parent / "data"))
 
 WORLD = 2
+TINY_CLI = Path(__file__).parent / "data" / "tiny_cli.py"
 STAGES = {"geometry": {"w_surface": 0.0}, "joint": {"w_surface": 0.0, "w_rgb": 0.0}}
 
 
@@ -114,32 +117,19 @@ def test_two_process_gradients_equal_the_single_process_gradients(rendered, tiny
         torch.set_num_threads(threads)
 
 
-def _fit_worker(rank: int, init_file: str, dataset: Path, run: Path, settings: dict) -> None:
-    import torch.distributed as dist
-
-    from headforge.avatars.engine import fit
-
-    _join(rank, init_file)
-    try:
-        metrics = fit("nha", dataset, run, _config(settings), log=lambda m: None)
-        assert metrics["method"] == "nha"  # every rank gets rank 0's figures
-    finally:
-        dist.destroy_process_group()
-
-
 def _losses(run: Path) -> list[list[str]]:
     return list(csv.reader((run / "losses.csv").read_text().splitlines()))
 
 
 @pytest.mark.slow  # three tiny runs, one of them on two processes: ~1 min on 2 quiet cores
 def test_a_two_process_run_resumes_a_checkpoint_and_follows_the_single_process_run(tiny_head, tmp_path, interrupt_after):
-    """A run killed in its third iteration (checkpoint at 2), resumed by 2 processes, ends like
-    the same run on one process: the same losses, weights and fitted frames (the alignment after
+    """A run killed in its third iteration (checkpoint at 2), resumed by ``torchrun
+    --nproc-per-node 2 ... fit``, ends like the same run on one process: the same losses, weights and fitted frames (the alignment after
     the geometry stage and the test-time fitting shared by the ranks); rank 0 alone wrote."""
-    import torch.multiprocessing as mp
     from safetensors.torch import load_file
 
     from conftest import write_rendered_dataset
+    from make_nha_reference import reference_settings
     from headforge.avatars.engine import fit
 
     # 12 training frames: per-frame fitting deals two batches of 8 and 4 frames to the two ranks
@@ -154,7 +144,15 @@ def test_a_two_process_run_resumes_a_checkpoint_and_follows_the_single_process_r
             fit("nha", dataset, tmp_path / "ddp", _config(settings), log=lambda m: None, progress=interrupt_after(3))
     finally:
         torch.set_num_threads(threads)
-    mp.spawn(_fit_worker, args=(str(tmp_path / "init"), dataset, tmp_path / "ddp", settings), nprocs=WORLD)
+    # the command line under torchrun (rendezvous on a free local port), as a user runs it
+    sets = [a for k, v in (reference_settings() | settings).items() for a in ("--set", f"{k}={v}")]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    res = subprocess.run([str(torchrun), "--standalone", "--nproc-per-node", str(WORLD), str(TINY_CLI), "fit", "nha",
+                          str(dataset), "-o", str(tmp_path / "ddp"), "--device", "cpu", *sets],
+                         capture_output=True, text=True, env=os.environ | {"OMP_NUM_THREADS": "1"}, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    printed = [line for line in res.stdout.splitlines() if line.startswith("{")]
+    assert len(printed) == 1 and json.loads(printed[0])["method"] == "nha"  # rank 0 alone prints
 
     # The step's arithmetic is the same (the test above); float rounding in a different order,
     # which Adam's normalised steps amplify where a gradient is near zero, leaves ~1e-3 drift.
