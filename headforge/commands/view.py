@@ -26,6 +26,8 @@ def view(path: Path = typer.Argument(..., help="a run folder, a tracked dataset 
     progress(f"preparing {path}")
     scene = build_scene(path, texture_size, max_frames)
     server = ViewerServer(scene, host, port)
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        console.print(f"[yellow]note:[/] serving on {host}: other machines on your network can see this avatar")
     console.print(f"viewer: [bold]{server.url}[/]  (Ctrl-C to stop)")
     print(server.url, flush=True)
     try:
