@@ -47,6 +47,9 @@ def arkit_sequence(avatar, assets, path: Path) -> tuple[FrameParams, float]:
     from headforge.data.arkit import read_arkit_csv
 
     names = list(assets.meta.get("expression_names") or avatar.head.expression_names)
+    if not names:
+        raise HeadforgeError(f"{path}: ARKit CSV driving needs a head model with named ARKit expressions (open-head); "
+                             f"this avatar's {assets.meta.get('model')} has unnamed ones")
     clip = read_arkit_csv(path, names)
     T = len(clip.weights)
     own = {k: v.detach().cpu() for k, v in avatar.frames.items()}
