@@ -171,3 +171,66 @@ def test_a_two_process_run_resumes_a_checkpoint_and_follows_the_single_process_r
     a, b = (json.loads((tmp_path / r / "metrics.json").read_text()) for r in ("single", "ddp"))
     assert b["val_psnr"] == pytest.approx(a["val_psnr"], abs=0.02)
     assert (tmp_path / "ddp" / "progress.png").is_file() and (tmp_path / "ddp" / "val_worst.png").is_file()
+
+
+def _helpers_worker(rank: int, init_file: str, out: Path) -> None:
+    import torch.distributed as dist
+
+    from headforge import distributed
+    from headforge.errors import HeadforgeError
+
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=WORLD)
+    try:
+        result = {"rank": distributed.rank(), "main": distributed.is_main(), "world": distributed.world_size()}
+        result["share"] = distributed.shard(torch.arange(6)).tolist()
+        try:
+            distributed.shard(torch.arange(3))
+        except HeadforgeError as exc:
+            result["uneven"] = str(exc)
+        # a: used by both ranks; b: only by rank 1's items; c: by nobody
+        a, b, c = (torch.nn.Parameter(torch.zeros(2)) for _ in range(3))
+        a.grad = torch.full((2,), float(rank + 1))
+        if rank == 1:
+            b.grad = torch.tensor([4.0, -2.0])
+        distributed.average_gradients([a, b, c])
+        result["grads"] = [a.grad.tolist(), b.grad.tolist(), c.grad]
+        flags = torch.nn.Module()
+        flags.register_buffer("seen", torch.tensor([rank == 0, rank == 1, False]))
+        distributed.combine_flags(flags)
+        result["flags"] = flags.seen.tolist()
+        table = {"x": torch.full((4, 2), float(rank)), "y": torch.full((4,), 10.0 * rank)}
+        rows = torch.tensor([0, 1, 3])
+        distributed.merge_rows(table, rows, torch.tensor([rank == 0, rank == 1, rank == 1]))
+        result["merged"] = [table["x"][:, 0].tolist(), table["y"].tolist()]
+        result["terms"] = {k: float(v) for k, v in distributed.mean_terms({"l": torch.tensor(float(rank))}).items()}
+        result["owned"] = distributed.owned(5)
+        result["object"] = distributed.broadcast_object({"from": rank})
+        torch.save(result, out / f"{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_the_distributed_helpers(tmp_path):
+    """average_gradients (gradients on some ranks only), combine_flags, merge_rows, shard,
+    owned, mean_terms, broadcast_object on 2 gloo processes; all no-ops without a group."""
+    import torch.multiprocessing as mp
+
+    from headforge import distributed
+
+    mp.spawn(_helpers_worker, args=(str(tmp_path / "init"), tmp_path), nprocs=WORLD)
+    r0, r1 = (torch.load(tmp_path / f"{r}.pt") for r in range(WORLD))
+    assert (r0["main"], r1["main"], r0["world"]) == (True, False, 2)
+    assert r0["share"] == [0, 1, 2] and r1["share"] == [3, 4, 5]
+    assert "cannot be split evenly over 2 processes" in r0["uneven"]
+    for r in (r0, r1):
+        assert r["grads"] == [[1.5, 1.5], [2.0, -1.0], None]  # b: rank 1's gradient / 2, on both ranks
+        assert r["flags"] == [True, True, False]
+        # row 0 from rank 0, rows 1 and 3 from rank 1, row 2 (nobody's) left as it was
+        assert r["merged"][0][:2] == [0.0, 1.0] and r["merged"][0][3] == 1.0
+        assert r["merged"][1][:2] == [0.0, 10.0] and r["merged"][1][3] == 10.0
+        assert r["terms"] == {"l": 0.5} and r["object"] == {"from": 0}
+    assert r0["owned"] == [0, 2, 4] and r1["owned"] == [1, 3]
+    # without a process group: one rank, nothing to do
+    assert not distributed.active() and distributed.is_main() and distributed.world_size() == 1
+    rows = torch.arange(3)
+    assert distributed.shard(rows) is rows and distributed.owned(3) == [0, 1, 2]
