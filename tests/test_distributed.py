@@ -234,3 +234,31 @@ def test_the_distributed_helpers(tmp_path):
     assert not distributed.active() and distributed.is_main() and distributed.world_size() == 1
     rows = torch.arange(3)
     assert distributed.shard(rows) is rows and distributed.owned(3) == [0, 1, 2]
+
+
+POINT_SETTINGS = dict(resolution=64, iterations=12, init_points=300, upsample_every=5, prune_every=4, max_points=2000,
+                      canonical_width=32, canonical_layers=3, canonical_skip=2, frequencies=2, deformer_width=32,
+                      deformer_layers=2, shading_width=16, val_every=6, checkpoint_every=4, val_frames=2, tto_steps=2,
+                      tto_photometric_steps=0, val_tto_steps=1, points_per_pixel=4)
+
+
+@pytest.mark.slow  # two tiny PointAvatar runs through the command line: ~1 min on 2 quiet cores
+def test_pointavatar_on_two_processes_prunes_and_doubles_as_on_one(tiny_head, tmp_path):
+    """Pruning reads the points' visibility, which each rank gathers from its own frames: OR-ed
+    over the ranks it is the single-process visibility, so the point counts match exactly."""
+    from conftest import write_rendered_dataset
+
+    dataset = write_rendered_dataset(tmp_path / "data", tiny_head, frames=12, val=4)
+    sets = [a for k, v in POINT_SETTINGS.items() for a in ("--set", f"{k}={v}")]
+    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    torchrun = [str(Path(sys.executable).with_name("torchrun")), "--standalone", "--nproc-per-node", str(WORLD)]
+    for launcher, run in (([sys.executable], "single"), (torchrun, "ddp")):
+        res = subprocess.run([*launcher, str(TINY_CLI), "fit", "pointavatar", str(dataset), "-o", str(tmp_path / run),
+                              "--device", "cpu", *sets], capture_output=True, text=True, env=env, timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+    single, ddp = (json.loads((tmp_path / r / "state.json").read_text()) for r in ("single", "ddp"))
+    assert ddp["points"] == single["points"] and ddp["pruned"] == single["pruned"]
+    assert len(single["pruned"]) == 2 and len(single["points"]) == 4  # the schedule ran: 2 prunes, 2 doublings
+    a, b = (json.loads((tmp_path / r / "metrics.json").read_text()) for r in ("single", "ddp"))
+    assert b["val_psnr"] == pytest.approx(a["val_psnr"], abs=0.05)
+    assert (tmp_path / "ddp" / "points.png").is_file()  # the method's pictures, by rank 0
