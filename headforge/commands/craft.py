@@ -167,7 +167,8 @@ def animate(map_path: Path = typer.Argument(..., help="a map.png (of craft sampl
 
 @app.command("eval")
 def evaluate(run: Path = typer.Argument(..., help="run folder of headforge craft train"),
-             heldout: Path = typer.Argument(..., help="map folder of held-out scans (headforge craft register output)"),
+             heldout: Path = typer.Argument(..., help="map folder of held-out scans (headforge craft register output), or the training folder: "
+                                                           "then the identities the run held out"),
              model: str = typer.Option("all", "--model", help="a trained model, bare, or all (every trained one + bare)"),
              points: int = typer.Option(2048, help="points per mesh (the paper: 10K)"),
              seeds: int = typer.Option(3, help="sampling seeds (mean and spread)"),

@@ -34,12 +34,21 @@ from headforge.metrics import distribution as dist
 
 def heldout_set(folder: str | Path, meta: dict, points: int, seed: int = 0) -> dict:
     """Clouds (S, P, 3) of the held-out registered meshes, which are neutral, and their maps at
-    the run's resolution (for the memorisation check)."""
+    the run's resolution (for the memorisation check). Maps of the run's training keys are
+    skipped (so the training folder itself can be passed when the run held identities out);
+    an identity that is also in the training set is an error."""
     import trimesh
 
     from headforge.craft.register import sample_scan
 
-    items = D.list_maps(folder)
+    train_keys = set(meta["train_keys"])
+    train_ids = {D.identity_of(k) for k in train_keys}
+    items = [it for it in D.list_maps(folder) if it.key not in train_keys]
+    if not items:
+        raise HeadforgeError(f"every map of {folder} was used for training: pass held-out scans (other identities)")
+    shared = sorted({it.identity for it in items} & train_ids)
+    if shared:
+        raise HeadforgeError(f"held-out identities {shared[:3]} are also in the training set: pass other identities")
     clouds, neutral, keys = [], [], []
     for it in items:
         ply = it.path.parent / "registered.ply"
@@ -51,11 +60,9 @@ def heldout_set(folder: str | Path, meta: dict, points: int, seed: int = 0) -> d
         clouds.append(sample_scan(np.asarray(mesh.vertices), np.asarray(mesh.faces), points, seed)[:points])
         neutral.append(it.key == it.identity)
         keys.append(it.key)
-    overlap = set(keys) & set(meta["train_keys"])
-    if overlap:
-        raise HeadforgeError(f"held-out maps include training maps ({sorted(overlap)[:3]}): pass scans not used for training")
     ms = D.load_maps(folder, meta["resolution"])
-    return {"clouds": np.stack(clouds), "neutral": np.asarray(neutral), "keys": keys, "maps": ms.maps}
+    maps = ms.maps[[ms.keys.index(k) for k in keys]]
+    return {"clouds": np.stack(clouds), "neutral": np.asarray(neutral), "keys": keys, "maps": maps}
 
 
 def generated_clouds(model: S.Model, n: int, seed: int, points: int, truncation: float) -> tuple[np.ndarray, np.ndarray]:

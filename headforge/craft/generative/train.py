@@ -278,7 +278,6 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
     """Train (or resume) one method in a prepared run folder; returns its record in run.json."""
     run = Path(run)
     meta = read_run(run)
-    torch.set_num_threads(1) if torch.get_num_threads() > 2 else None
     cfg = make_config(method, options.preset, options.settings)
     if options.steps is not None:
         if options.steps < 1:
