@@ -56,6 +56,9 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
             console.print(f"run written to {output}/ (checkpoint, progress.png, val/, val_worst.png, metrics.json)")
             print(json.dumps(metrics))
         else:
-            run_fit(m, dataset, output, config, log=progress, device=target)
+            try:
+                run_fit(m, dataset, output, config, log=progress, device=target)
+            except HeadforgeError:
+                raise typer.Exit(1) from None  # the same one-line error: rank 0 prints it
     finally:
         distributed.shutdown()
