@@ -21,8 +21,10 @@ training); it is still removed when ``fn`` raises. With ``ray=True`` each item i
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import socket
+import sys
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -135,10 +137,7 @@ def _ray_init(ray, ray_address: str | None, num_cpus: int | None, timeout: float
     kwargs = dict(include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
         if ray_address:
-            check_reachable(ray_address, timeout)
-            # the port may answer without being Ray (a proxy): bound Ray's own retries (~1 s each) too
-            import os
-
+            # the port may answer without being Ray (a proxy): bound Ray's own attempts too
             bounded = {GCS_WAIT_ENV: str(max(1, round(timeout / 2)))}
             previous = {k: os.environ.get(k) for k in bounded}
             os.environ.update(bounded)
@@ -152,13 +151,8 @@ def _ray_init(ray, ray_address: str | None, num_cpus: int | None, timeout: float
                         os.environ[k] = v
         else:
             # a local runtime's workers import what this process can (fn may live in a script/test)
-            import os
-            import sys
-
             path = os.pathsep.join(p for p in sys.path if p)
             ray.init(num_cpus=num_cpus, runtime_env={"env_vars": {"PYTHONPATH": path}}, **kwargs)
-    except HeadforgeError:
-        raise
     except Exception as exc:  # noqa: BLE001 -- Ray's own errors are many-line
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
         where = f"the Ray cluster at {ray_address}" if ray_address else "a local Ray runtime"
@@ -175,6 +169,8 @@ def _check_resources(ray, cpus: float, gpus: float) -> None:
 
 def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int | None, log, cpus: float,
                  gpus: float, keep_partial: bool, timeout: float) -> list[ItemResult]:
+    if ray_address:  # an address that does not answer is the user's error with or without ray
+        check_reachable(ray_address, timeout)
     try:
         import ray
     except ImportError:
