@@ -193,7 +193,8 @@ def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int 
                 lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not set(ln.strip()) <= set("^~")]
                 message = lines[-1] if lines else type(exc).__name__  # Ray puts the cause last
                 results.append(ItemResult(key, "failed", error=f"ray: {message}"))
-                shutil.rmtree(output / f".{key}.partial", ignore_errors=True)
+                if not keep_partial:  # a killed item that resumes its own work continues from it next time
+                    shutil.rmtree(output / f".{key}.partial", ignore_errors=True)
             r = results[-1]
             log(f"[{len(results)}/{len(refs)}] {key}: {r.status}" + (f" ({r.error})" if r.error else f" in {r.seconds:.1f} s"))
         return results

@@ -24,7 +24,7 @@ app = typer.Typer(help="Run track or fit over every video or dataset of a folder
 TRACK_COLUMNS = ("frames_valid", "landmark_median_px", "track_seconds")
 FIT_COLUMNS = ("val_psnr", "val_psnr_head", "val_akd_px", "train_minutes")
 
-RAY_OPT = typer.Option(False, "--ray", help="run the items as tasks on a local Ray runtime (pip install 'headforge[ray]')")
+RAY_OPT = typer.Option(False, "--ray", help="run the items as tasks on a local Ray runtime (pip install 'headforge\\[ray]')")
 ADDRESS_OPT = typer.Option(None, "--ray-address", help="an existing Ray cluster, host:port or ray://host:port (implies --ray)")
 CPUS_OPT = typer.Option(1.0, "--cpus-per-item", help="CPUs per item: Ray's request, and the item's torch threads")
 GPUS_OPT = typer.Option(0.0, "--gpus-per-item", help="GPUs per item (Ray's request; fractions share a GPU)")
@@ -130,7 +130,7 @@ def track(videos: Path = typer.Argument(..., help="folder of videos (mp4, mov, .
           overlay: bool = typer.Option(True, help="write overlay.mp4 in each dataset"),
           ray: bool = RAY_OPT, ray_address: Optional[str] = ADDRESS_OPT, cpus_per_item: float = CPUS_OPT,
           gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT) -> None:
-    """Track every video of a folder (``headforge track`` per video): OUT/NAME/ per video, summary.md.
+    """Track every video of a folder (headforge track per video) into OUT/NAME/, with OUT/summary.md.
     A failing video is reported and never stops the others; a re-run skips the finished ones."""
     from headforge.track.pipeline import TrackOptions
 
@@ -153,8 +153,8 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
         set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE", help="override a config field"),
         ray: bool = RAY_OPT, ray_address: Optional[str] = ADDRESS_OPT, cpus_per_item: float = CPUS_OPT,
         gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT) -> None:
-    """Train one avatar per dataset of a folder (``headforge fit`` per dataset): OUT/NAME/ run
-    folders, summary.md. A killed batch resumes its unfinished runs where they stopped."""
+    """Train one avatar per dataset of a folder (headforge fit per dataset) into OUT/NAME/, with
+    OUT/summary.md. A killed batch resumes its unfinished runs where they stopped."""
     from headforge.avatars import registry
     from headforge.commands.fit import make_config
 
