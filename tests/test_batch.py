@@ -118,28 +118,40 @@ def test_an_unanswering_ray_address_fails_within_the_timeout():
     assert time.perf_counter() - start < 5
 
 
-def test_batch_fit_trains_each_dataset_and_resumes(tmp_path, monkeypatch, tiny_head):
-    """The real engine per dataset (tiny NHA runs): a dataset with broken tracking fails alone."""
+def test_batch_fit_trains_each_dataset_and_resumes(tmp_path, monkeypatch, tiny_head, interrupt_after):
+    """The real engine per dataset (tiny NHA runs): a dataset with broken tracking fails alone,
+    a run a killed batch left half done continues from its checkpoint."""
     from conftest import write_rendered_dataset
     from make_nha_reference import reference_settings
 
+    from headforge.avatars import registry
+    from headforge.avatars.engine import fit
+    from headforge.commands.fit import make_config
+
     tiny = reference_settings() | {"geometry_iters": 2, "texture_iters": 2, "joint_iters": 2, "tto_steps": 2,
-                                   "val_every": 6, "checkpoint_every": 6}
+                                   "val_every": 6, "checkpoint_every": 3}
     settings = [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
     datasets = tmp_path / "datasets"
     write_rendered_dataset(datasets / "s1", tiny_head, frames=5, val=2)
     write_rendered_dataset(datasets / "s2", tiny_head, frames=5, val=2, seed=1)
+    write_rendered_dataset(datasets / "s3", tiny_head, frames=5, val=2, seed=2)
     (datasets / "s2" / "tracking.safetensors").write_bytes(b"broken")
     out = tmp_path / "runs"
+    # s3: a batch killed in s3's fifth iteration (its last checkpoint at 3)
+    config = make_config(registry.get("nha"), "quick", None, None, [a for a in settings if a != "--set"])
+    with pytest.raises(KeyboardInterrupt):
+        fit("nha", datasets / "s3", out / ".s3.partial", config, log=lambda m: None, progress=interrupt_after(5))
     code, output = _invoke("batch", "fit", "nha", datasets, "-o", out, "--device", "cpu", *settings)
     assert code == 0, output
     summary = json.loads((out / "summary.json").read_text())
-    assert [r["status"] for r in summary["items"]] == ["ok", "failed"]
+    assert [r["status"] for r in summary["items"]] == ["ok", "failed", "ok"]
     assert (out / "s1" / "metrics.json").is_file() and (out / "s1" / "run.json").is_file()
     assert summary["items"][0]["metrics"]["val_psnr"] > 0
-    assert (out / "_logs" / "s1.log").read_text()
+    assert "iteration 6" in (out / "_logs" / "s1.log").read_text()
+    assert "resuming" in (out / "_logs" / "s3.log").read_text()
+    assert [line.split(",")[0] for line in (out / "s3" / "losses.csv").read_text().splitlines()] == list("123456")
     code, output = _invoke("batch", "fit", "nha", datasets, "-o", out, "--device", "cpu", *settings)
-    assert [r["status"] for r in json.loads((out / "summary.json").read_text())["items"]] == ["skipped", "failed"]
+    assert [r["status"] for r in json.loads((out / "summary.json").read_text())["items"]] == ["skipped", "failed", "skipped"]
 
 
 def test_batch_track_on_a_local_ray_runtime(tmp_path, monkeypatch):
