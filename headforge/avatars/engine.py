@@ -92,7 +92,8 @@ def fit_frames(method: Method, avatar: Avatar, data: FrameData, config, steps: i
                 for k, p in params.items():
                     avatar.frames[k][idx] = p.detach()
         if distributed.active():  # every rank gets the frames the others fitted
-            owner = torch.cat([torch.full((len(c),), i in set(mine)) for i, c in enumerate(chunks)])
+            own = set(mine)
+            owner = torch.cat([torch.full((len(c),), i in own) for i, c in enumerate(chunks)])  # this rank's rows
             distributed.merge_rows(avatar.frames, data.index[torch.cat(chunks)], owner.to(data.index.device))
     finally:
         for p, flag in zip(avatar.parameters(), was):
