@@ -106,9 +106,11 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, size: int = 256, yaws=
     (0 = front, 90 = its left side, 180 = back), aimed at the middle of the head."""
     from headforge.craft.scans import render_mesh
 
-    target = np.array([0.0, float(np.percentile(vertices[:, 1], 70)), float(np.median(vertices[:, 2]))])
+    upper = vertices[vertices[:, 1] > np.percentile(vertices[:, 1], 20)]
+    target = 0.5 * (upper.min(0) + upper.max(0))
+    target[0] = 0.0
     col = np.tile(np.asarray(colour), (len(vertices), 1))
-    return np.concatenate([render_mesh(vertices, faces, col, size, yaw, target, distance=0.7) for yaw in yaws], 1)
+    return np.concatenate([render_mesh(vertices, faces, col, size, yaw, target, distance=0.65) for yaw in yaws], 1)
 
 
 def animate(template: Template, duv: uvmap.DenseUV, map_m: np.ndarray, identity: dict | None, dataset: str | Path,
