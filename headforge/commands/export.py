@@ -30,6 +30,9 @@ def export(run: Path = typer.Argument(..., help="a run folder of headforge fit")
            texture_size: int = typer.Option(512, help="baked texture size in pixels"),
            driving: Optional[Path] = typer.Option(None, help="glb: the animation's clip, a tracked dataset or a Live "
                                                              "Link Face CSV (default: the run's own frames)"),
+           driving_mode: str = typer.Option("relative", help="a tracked --driving dataset: relative (NHA App. B.1) "
+                                                             "or absolute, as in render avatar"),
+           driving_neutral: int = typer.Option(0, help="relative driving: the driving dataset's neutral frame"),
            max_frames: Optional[int] = typer.Option(None, help="at most this many frames of the animation")) -> None:
     """Export the avatar (neutral and per frame) with its baked texture; glb: animatable (skin,
     expression morph targets, an animation of the driving clip)."""
@@ -45,7 +48,7 @@ def export(run: Path = typer.Argument(..., help="a run folder of headforge fit")
         raise HeadforgeError(f"--format must be one of {', '.join(formats)} for a {r.method.name} avatar, got {fmt!r}")
     animated = {}
     if fmt == "glb" or driving is not None:  # an animation (glb) or a PLY sequence (point avatars)
-        seq, fps = driving_clip(r.avatar, r.assets, driving)
+        seq, fps = driving_clip(r.avatar, r.assets, driving, "all", driving_mode, driving_neutral)
         seq = truncate(seq, max_frames)
         if seq["translation"].shape[0] == 0:
             raise HeadforgeError("the driving clip has no frames")

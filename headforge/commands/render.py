@@ -40,6 +40,11 @@ def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit")
            output: Path = typer.Option(..., "-o", "--output", help="MP4 to write"),
            driving: Optional[Path] = typer.Option(None, help="dataset whose tracked expressions/poses drive the avatar, "
                                                              "or a Live Link Face CSV of ARKit blendshapes"),
+           driving_mode: str = typer.Option("relative", help="a tracked --driving dataset: relative (NHA App. B.1: its "
+                                                             "change from its neutral frame added to the avatar's "
+                                                             "first frame) or absolute (its own values)"),
+           driving_neutral: int = typer.Option(0, help="relative driving: the driving dataset's neutral frame "
+                                                       "(position among its valid frames)"),
            orbit: bool = typer.Option(False, help="orbit the camera around the head (novel views)"),
            split: str = typer.Option("val", help="frames of the run's own dataset when not driven: train, val or all"),
            max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
@@ -63,7 +68,7 @@ def avatar(run: Path = typer.Argument(..., help="a run folder of headforge fit")
     r = load_run(run)
     if options and not getattr(r.avatar, "relightable", False):
         raise HeadforgeError(f"--light: {r.method.name} avatars cannot be relit (PointAvatar's can)")
-    seq, clip_fps = driving_clip(r.avatar, r.assets, driving, split)
+    seq, clip_fps = driving_clip(r.avatar, r.assets, driving, split, driving_mode, driving_neutral)
     fps = fps or clip_fps
     seq = truncate(seq, max_frames)
     T = seq["translation"].shape[0]
