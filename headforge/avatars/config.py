@@ -47,6 +47,10 @@ class EngineConfig:
     def scale_schedule(self, iterations: int) -> None:
         raise HeadforgeError(f"{type(self).__name__} has no --iterations scaling")
 
+    def schedule_for(self, train_frames: int) -> None:
+        """Fit a schedule given per epoch to a dataset of ``train_frames`` training frames (a
+        method's config may; by default the schedule is in iterations and nothing changes)."""
+
     def override(self, assignment: str) -> None:
         """Set one field from ``"name=value"`` (the value parsed as the field's current type;
         tuples as comma-separated ints), e.g. ``"tex_grid=256"`` or ``"normal_channels=32,32,16"``."""

@@ -70,7 +70,8 @@ def fit_item(key: str, payload: dict, workdir: Path) -> dict:
 
     _threads(payload["cpus"])
     method = registry.get(payload["method"])
-    config = make_config(method, payload["preset"], payload["iterations"], payload["resolution"], payload["set"])
+    config = make_config(method, payload["preset"], payload["iterations"], payload["resolution"], payload["set"],
+                         payload["dataset"])
     return fit(method, payload["dataset"], workdir, config, log=_logger(workdir.parent, key),
                device=resolve_device(payload["device"]))
 

@@ -12,8 +12,11 @@ from headforge.commands.common import Bars, console, progress
 from headforge.errors import HeadforgeError
 
 
-def make_config(method, preset: str, iterations: Optional[int], resolution: Optional[int], assignments: list[str]):
-    """The method's config: a preset, then ``--resolution``, ``--iterations`` and ``--set``."""
+def make_config(method, preset: str, iterations: Optional[int], resolution: Optional[int], assignments: list[str],
+                dataset: Optional[Path] = None):
+    """The method's config: a preset, then ``--resolution``, ``--iterations`` and ``--set``; with
+    ``dataset``, a schedule given in epochs (NHA's ``paper`` preset) turned into iterations of its
+    training frames (``config.schedule_for``)."""
     config = method.Config.preset(preset)
     if resolution is not None:
         if resolution < 64:
@@ -23,6 +26,10 @@ def make_config(method, preset: str, iterations: Optional[int], resolution: Opti
         config.scale_schedule(iterations)
     for assignment in assignments:
         config.override(assignment)
+    if dataset is not None:
+        from headforge.avatars.run import RunAssets
+
+        config.schedule_for(len(RunAssets.from_dataset(Path(dataset)).rows("train")))
     return config
 
 
@@ -44,7 +51,7 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
     from headforge.avatars.engine import fit as run_fit
 
     m = registry.get(method)
-    config = make_config(m, preset, iterations, resolution, set_ or [])
+    config = make_config(m, preset, iterations, resolution, set_ or [], dataset)
     target = distributed.init_from_environment(device)  # the device as asked when not under torchrun
     try:
         if distributed.is_main():

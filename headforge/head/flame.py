@@ -214,7 +214,8 @@ def _add_landmarks(data: HeadModelData, folder: Path) -> None:
 FLAME_MASK_TO_REGION = {"face": ["face"], "scalp": ["scalp"], "neck": ["neck"], "lips": ["lips"],
                         "ears": ["left_ear", "right_ear"], "eyeballs": ["left_eyeball", "right_eyeball"],
                         "eyeball_left": ["left_eyeball"], "eyeball_right": ["right_eyeball"],
-                        "nose": ["nose"], "forehead": ["forehead"], "boundary": ["boundary"]}
+                        "nose": ["nose"], "forehead": ["forehead"], "eye_region": ["eye_region"],
+                        "boundary": ["boundary"]}
 
 
 def _add_masks(data: HeadModelData, folder: Path) -> None:

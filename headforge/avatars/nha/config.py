@@ -55,6 +55,22 @@ class NHAConfig(EngineConfig):
     w_prior: float = 1e-3
     align_steps: int = 30  # per training frame after the geometry stage (0: off); 10 -> 30 +0.11 dB on talking_bun (docs/nha_figures.md)
     joint_limits: bool = True  # NHA's tanh joint limits (App. A.1) on the neck, jaw and eyes
+    # App. A (paper preset): each field defaults to the quick preset's behaviour; NHAConfig.paper()
+    # switches them all to the paper's. Side by side with the reasons: docs/nha.md, "Deviations".
+    laplacian_regions: str = "headforge"  # headforge | table3 (App. Table 3's region weights, doubled in the joint stage)
+    laplacian_operator: str = "uniform"  # uniform (umbrella) | cotangent (Laplace-Beltrami on the template, App. A.3)
+    laplacian_norm: str = "squared"  # squared | l1 (App. A.3); the L1 subgradient drowned the hair signal (docs/nha.md)
+    edge_mode: str = "template"  # template (ratio to each template edge) | mean (excess over 1.5x the mean edge, App. A.3)
+    tex_last_width: int = 0  # width of T's last SIREN layer (0: tex_width); App. A.2.2: 128
+    tex_mapping_width: int = 128  # T's mapping-network width; App. A.2.2: as G's, 256
+    mouth_condition: str = "jaw3"  # jaw3 (jaw rotation + 3 inner-lip distances) | neck10 (global∘neck + 10, App. A.2.2)
+    close_mouth: bool = False  # App. A.1: close FLAME's mouth hole (FLAME templates only; open-head has a mouth interior)
+    tex_weight_decay: float = 0.0  # Adam weight decay of T's network (not its UV grids); NHA's code: 1e-4
+    stage_epochs: tuple[int, ...] = ()  # (geometry, texture, joint) epochs (App. A.3: 150, 100, 50); (): the *_iters fields
+    epoch_frames_cap: int = 750  # App. A.3: longer clips keep the iterations of a 750-frame clip
+    early_stop_frames: int = 0  # joint stage: frames held back from the end of the training range (0: off)
+    early_stop_every: int = 250  # iterations between two checks of the held-back frames' loss
+    early_stop_patience: int = 2  # checks without improvement before the joint stage ends
 
     @classmethod
     def quick(cls) -> "NHAConfig":
@@ -65,12 +81,46 @@ class NHAConfig(EngineConfig):
 
     @classmethod
     def paper(cls) -> "NHAConfig":
-        return cls(resolution=512)
+        """App. A's choices (docs/nha.md, "Deviations"); the iterations follow from ``stage_epochs``
+        and the dataset (:meth:`schedule_for`, which ``headforge fit`` calls)."""
+        return cls(resolution=512, laplacian_regions="table3", laplacian_operator="cotangent", laplacian_norm="l1",
+                   laplacian_face_cut=False, edge_mode="mean", tex_last_width=128, tex_mapping_width=256,
+                   mouth_condition="neck10", close_mouth=True, tex_weight_decay=1e-4, stage_epochs=(150, 100, 50),
+                   early_stop_frames=8)
+
+    CHOICES = {"laplacian_regions": ("headforge", "table3"), "laplacian_operator": ("uniform", "cotangent"),
+               "laplacian_norm": ("squared", "l1"), "edge_mode": ("template", "mean"),
+               "mouth_condition": ("jaw3", "neck10")}
+
+    def check(self) -> None:
+        """One-line errors for settings out of their range (the string choices, the epochs)."""
+        for name, allowed in self.CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise HeadforgeError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.stage_epochs and (len(self.stage_epochs) != 3 or min(self.stage_epochs) < 1):
+            raise HeadforgeError(f"stage_epochs must be three epoch counts >= 1 (geometry, texture, joint), got {self.stage_epochs}")
+
+    def epoch_iterations(self, train_frames: int) -> tuple[int, int, int]:
+        """(geometry, texture, joint) iterations of ``stage_epochs`` on ``train_frames`` training
+        frames in batches of ``batch`` (frames beyond ``epoch_frames_cap`` add none, App. A.3)."""
+        frames = min(train_frames, self.epoch_frames_cap)
+        return tuple(max(1, round(e * frames / self.batch)) for e in self.stage_epochs)
+
+    def schedule_for(self, train_frames: int) -> None:
+        """With ``stage_epochs`` set, the stages' iterations for a dataset of ``train_frames``
+        training frames; without, nothing changes."""
+        self.check()
+        if self.stage_epochs:
+            self.geometry_iters, self.texture_iters, self.joint_iters = self.epoch_iterations(train_frames)
 
     def scale_schedule(self, iterations: int) -> None:
-        """Rescale the three stages to ``iterations`` in total, keeping their proportions."""
+        """Rescale the three stages to ``iterations`` in total, keeping their proportions (with
+        ``stage_epochs``: the epochs' proportions, which then no longer set the schedule)."""
         if iterations < 3:
             raise HeadforgeError(f"--iterations must be >= 3, got {iterations}")
+        if self.stage_epochs:
+            self.geometry_iters, self.texture_iters, self.joint_iters = self.stage_epochs
+            self.stage_epochs = ()
         total = self.total_iters
         self.geometry_iters = max(1, round(iterations * self.geometry_iters / total))
         self.texture_iters = max(1, round(iterations * self.texture_iters / total))

@@ -29,6 +29,7 @@ from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.nha.config import NHAConfig
 from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 from headforge.avatars.registry import register
+from headforge.errors import HeadforgeError
 from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras, project_points
 
@@ -175,7 +176,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
                                          + 10 * sum(params[k].pow(2).mean() for k in ("neck_pose", "jaw_pose")))
     if stage in ("geometry", "joint"):
         mm = 1000 * r.offsets  # regularisers in millimetres
-        out["laplacian"] = config.w_laplacian * avatar.laplacian_term(mm)
+        out["laplacian"] = config.w_laplacian * avatar.laplacian_term(mm, stage)
         out["offset_face"] = config.w_offset_face * ((mm ** 2).sum(-1) * avatar.face_vertices).mean()
         out["edge"] = config.w_edge * avatar.edge_term(r.offsets + avatar.head.v_template)
         if B > 1:  # surface consistency between the frames of the batch (random pairs)
@@ -203,7 +204,7 @@ def optimisers(avatar, config: NHAConfig) -> dict:
                                  {"params": [avatar.shape], "lr": config.lr_shape}])
     grids = ("grid", "mouth_grid")
     texture = torch.optim.Adam([{"params": [p for n, p in avatar.texture_net.named_parameters() if n not in grids],
-                                 "lr": config.lr_texture},
+                                 "lr": config.lr_texture, "weight_decay": config.tex_weight_decay},
                                 {"params": [getattr(avatar.texture_net, n) for n in grids], "lr": config.lr_grid}]
                                + ([{"params": [avatar.sh], "lr": config.lr_texture * 10}] if avatar.sh is not None else []))
     return {"frames": frames, "geometry": geometry, "texture": texture}
@@ -212,7 +213,15 @@ def optimisers(avatar, config: NHAConfig) -> dict:
 def build_avatar(assets, config: NHAConfig):
     from headforge.avatars.nha.model import NeuralHeadAvatar, build_template
 
-    template = build_template(assets.head_data(), config.subdivide, config.remove_lower_neck)
+    config.check()
+    if config.stage_epochs:
+        want = config.epoch_iterations(len(assets.rows("train")))
+        if want != (config.geometry_iters, config.texture_iters, config.joint_iters):
+            raise HeadforgeError(f"stage_epochs {config.stage_epochs} make {want} iterations on this dataset, the config has "
+                                 f"{(config.geometry_iters, config.texture_iters, config.joint_iters)}: call "
+                                 f"config.schedule_for(training frames) first (headforge fit does)")
+    template = build_template(assets.head_data(), config.subdivide, config.remove_lower_neck, config.close_mouth,
+                              config.laplacian_regions == "table3")
     return NeuralHeadAvatar(template, assets.tracking, config)
 
 
@@ -239,6 +248,15 @@ def fit_matte(avatar, data, config: NHAConfig, frames: int = 32) -> tuple[float,
     return sigma, scores
 
 
+def held_back(config: NHAConfig, train_frames: int) -> torch.Tensor:
+    """Positions (in the training frames) of the ``early_stop_frames`` frames held back from the
+    end of the training range for the early stop: never trained on, never the scored split."""
+    k = config.early_stop_frames
+    if k * 2 > train_frames:
+        raise HeadforgeError(f"early_stop_frames {k} needs at least {2 * k} training frames, the dataset has {train_frames}")
+    return torch.arange(train_frames - k, train_frames)
+
+
 @register
 class NHAMethod(Method):
     name = "nha"
@@ -256,12 +274,27 @@ class NHAMethod(Method):
         return optimisers(avatar, config)
 
     def losses(self, avatar, batch, K, config, stage, params=None):
+        if config.early_stop_frames and stage in ("geometry", "texture", "joint"):
+            batch = self._without_held_back(batch, config)
         return losses(avatar, batch, K, config, stage, params)
+
+    def _without_held_back(self, batch: dict, config: NHAConfig) -> dict:
+        """The training batch with each early-stop frame (:func:`held_back`) replaced by the frame
+        ``early_stop_frames`` positions before it: those frames are never trained on."""
+        train = self._train
+        pos = (batch["index"][:, None] == train.index[None, :]).float().argmax(1)
+        held = pos >= len(train) - config.early_stop_frames
+        if not held.any():
+            return batch
+        return train.batch(torch.where(held, pos - config.early_stop_frames, pos).cpu())
 
     def before_iteration(self, ctx) -> None:
         """After the geometry stage: align every training frame on its own, checkpointing every
         ALIGN_CHECKPOINT_FRAMES frames ("aligned" in the run's state)."""
         config, train = ctx.config, ctx.train
+        if config.early_stop_frames:
+            held_back(config, len(train))  # a one-line error for too short a training range
+            self._train = train  # the training batches swap the held-back frames out (losses)
         aligned = ctx.state.get("aligned", 0)
         if ctx.iteration != config.geometry_iters or config.align_steps <= 0 or aligned >= len(train):
             return
@@ -272,10 +305,41 @@ class NHAMethod(Method):
             ctx.checkpoint()
             ctx.log(f"aligned {ctx.state['aligned']}/{len(train)} training frames")
 
+    def after_iteration(self, ctx) -> bool:
+        """Early stop (App. A.3, ``early_stop_frames`` > 0): every ``early_stop_every`` joint
+        iterations, the held-back frames' (:func:`held_back`) L1 + (1 - SSIM) after the in-training
+        validation's fitting (``val_tto_steps``; no VGG for the paper's perceptual loss); after
+        ``early_stop_patience`` checks without a new best the joint stage ends (the engine's loop
+        ends when the iteration reaches the total). State: "early_stop" in the run's state."""
+        from headforge import distributed
+        from headforge.avatars.engine import validate
+
+        config = ctx.config
+        done = ctx.iteration - config.geometry_iters - config.texture_iters
+        if not config.early_stop_frames or done <= 0 or done % config.early_stop_every or ctx.iteration >= config.total_iters:
+            return False
+        held = held_back(config, len(ctx.train))
+        scores = validate(self, ctx.avatar, ctx.train.subset(held), config)
+        loss = distributed.broadcast_object(None if scores is None else scores["l1"] + 1 - scores["ssim"])
+        state = ctx.state.setdefault("early_stop", {"best": None, "since": 0, "checks": []})
+        state["checks"].append([ctx.iteration, loss])
+        if state["best"] is None or loss < state["best"]:
+            state["best"], state["since"] = loss, 0
+        else:
+            state["since"] += 1
+        ctx.log(f"early stop check at {ctx.iteration}: held-back L1 + (1 - SSIM) {loss:.4f} (best {state['best']:.4f})")
+        if state["since"] >= config.early_stop_patience:
+            state["stopped_at"] = ctx.iteration
+            ctx.log(f"early stop: the held-back frames' loss did not improve in {state['since']} checks; "
+                    f"the joint stage ends at iteration {ctx.iteration} of {config.total_iters}")
+            ctx.iteration = config.total_iters
+        return False
+
     def after_training(self, ctx) -> dict:
         sigma, _ = fit_matte(ctx.avatar, ctx.train, ctx.config)
         ctx.log(f"soft matte: edge sigma {sigma:.2f} px fitted to the training frames")
-        return {"matte_sigma_px": sigma}
+        stopped = ctx.state.get("early_stop", {}).get("stopped_at")
+        return {"matte_sigma_px": sigma} | ({"early_stop_iteration": stopped} if stopped else {})
 
     def extra_scores(self, ctx) -> dict:
         from headforge.avatars.engine import score

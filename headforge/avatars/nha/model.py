@@ -10,13 +10,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import roma
 import torch
 from torch import nn
 
 from headforge.avatars.base import Avatar, AvatarRender, Geometry
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
+from headforge.errors import HeadforgeError
 from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
-from headforge.head.lbs import surface_points
+from headforge.head.lbs import pose_to_rotmats, surface_points
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FRAME_KEYS, head_to_camera
 from headforge.head.topology import (directed_edges, laplacian_smooth, open_neck_ring, remove_region, subdivide_head,
@@ -34,16 +36,96 @@ EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tol
 # scalp's weight is NHAConfig.laplacian_scalp.
 LAPLACIAN_WEIGHTS = {"neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
                      "eyeballs": 50.0, "mouth_interior": 20.0}
+# App. Table 3's Laplacian weights of the geometry stage (the joint stage doubles them), in
+# precedence order: a vertex in several regions takes the last one's weight. Vertices in no listed
+# region (lips, eyelids, mouth interior: FLAME's face mask holds them) take the face's.
+TABLE3_LAPLACIAN = {"face": 0.05, "scalp": 0.05, "neck": 0.1, "lower_neck": 0.25, "forehead": 0.05, "nose": 0.025,
+                    "ears": 25.0, "eye_region": 5.0, "eyeballs": 0.0}
+# The 10 inner-lip landmark pairs of NHA's mouth condition (App. A.2.2; MediaPipe ids): the mouth's
+# width, then upper/lower inner-lip pairs from the subject's right to left.
+INNER_LIP_PAIRS_10 = ((78, 308), (191, 95), (80, 88), (81, 178), (82, 87), (13, 14), (312, 317), (311, 402),
+                      (310, 318), (415, 324))
+# MediaPipe outlines of the regions App. Table 3 names that open-head lacks (paper_regions)
+EYE_REGION_LOOPS = ((156, 70, 63, 105, 66, 107, 55, 193, 245, 128, 121, 120, 119, 118, 117, 111, 143),  # subject's right
+                    (383, 300, 293, 334, 296, 336, 285, 417, 465, 357, 350, 349, 348, 347, 346, 340, 372))
+FOREHEAD_LOOP = (21, 54, 103, 67, 109, 10, 338, 297, 332, 284, 251, 300, 293, 334, 296, 336, 9, 107, 66, 105, 63, 70)
+NOSE_LOOP = (168, 417, 465, 412, 399, 456, 420, 429, 358, 327, 326, 2, 97, 98, 129, 209, 198, 236, 174, 188, 245, 193)
 
 
-def build_template(data: HeadModelData, subdivide: bool, remove_lower_neck: bool) -> HeadModelData:
-    """NHA's template (App. A.1): 4-way subdivision (``subdivide``), lower neck removed
-    (``remove_lower_neck``; headforge keeps it by default, see NHAConfig)."""
+def build_template(data: HeadModelData, subdivide: bool, remove_lower_neck: bool, close_mouth: bool = False,
+                   table3_regions: bool = False) -> HeadModelData:
+    """NHA's template (App. A.1): FLAME's mouth hole closed (``close_mouth``; FLAME only), 4-way
+    subdivision (``subdivide``), lower neck removed (``remove_lower_neck``; headforge keeps it by
+    default, see NHAConfig). ``table3_regions``: add the regions of App. Table 3 the head model
+    lacks (eye surroundings, forehead, nose: :func:`paper_regions`)."""
+    if close_mouth and data.name == "flame":
+        data = close_flame_mouth(data)
+    if table3_regions:
+        data = paper_regions(data)
     if subdivide:
         data = subdivide_head(data)
     if remove_lower_neck and "lower_neck" in data.regions:
         data = remove_region(data, "lower_neck")
     return data
+
+
+def close_flame_mouth(data: HeadModelData) -> HeadModelData:
+    """FLAME with its mouth hole closed (App. A.1; :func:`close_hole_near` at the inner lips'
+    landmarks, iBUG 60-67, or the lips region)."""
+    from headforge.head.topology import close_hole_near
+
+    if data.landmark_faces is not None and len(data.landmark_faces) == 68:
+        v = torch.as_tensor(np.asarray(data.v_template), dtype=torch.float64)
+        lmk = surface_points(v[None], torch.as_tensor(np.asarray(data.faces)), torch.as_tensor(data.landmark_faces),
+                             torch.as_tensor(data.landmark_bary))[0].numpy()
+        centre = lmk[60:68].mean(0)
+    elif "lips" in data.regions:
+        centre = np.asarray(data.v_template)[data.regions["lips"]].mean(0)
+    else:
+        raise HeadforgeError("closing FLAME's mouth needs its landmark_embedding.npy or FLAME_masks.pkl")
+    return close_hole_near(data, centre)
+
+
+def _inside_loop(data: HeadModelData, landmarks: np.ndarray, loop: tuple[int, ...], hull: bool = False,
+                 depth: float = 0.01) -> np.ndarray:
+    """(V,) bool: template vertices inside the frontal (x, y) polygon of ``landmarks[loop]`` (its
+    convex hull with ``hull``) and no more than ``depth`` metres behind its rearmost point (the
+    front surface only). ``landmarks``: (478, 3) on the template, metres."""
+    from matplotlib.path import Path as Polygon
+    from scipy.spatial import ConvexHull
+
+    v = np.asarray(data.v_template)
+    points = landmarks[list(loop)]
+    outline = points[ConvexHull(points[:, :2]).vertices, :2] if hull else points[:, :2]
+    return Polygon(outline).contains_points(v[:, :2]) & (v[:, 2] > points[:, 2].min() - depth)
+
+
+def paper_regions(data: HeadModelData) -> HeadModelData:
+    """``data`` with App. Table 3's regions it lacks -- ``eye_region`` (eye surroundings: from the
+    brow to below the lower lid), ``forehead`` (above the brows, inside the face oval), ``nose`` --
+    as the template vertices inside MediaPipe landmark outlines (EYE_REGION_LOOPS,
+    FOREHEAD_LOOP, NOSE_LOOP), in front. Eyeballs, eye cavities and the mouth interior are left
+    out. FLAME's masks give these regions directly (``eye_region``, ``forehead``, ``nose``);
+    other models need the 478-point MediaPipe embedding."""
+    from dataclasses import replace
+
+    missing = [k for k in ("eye_region", "forehead", "nose") if k not in data.regions]
+    if not missing:
+        return data
+    if data.landmark_faces is None or len(data.landmark_faces) != 478:
+        raise HeadforgeError(f"head model {data.name!r} has no {', '.join(missing)} region(s), and defining them "
+                             f"needs MediaPipe's 478 landmarks embedded on it")
+    v = torch.as_tensor(np.asarray(data.v_template), dtype=torch.float64)
+    lmk = surface_points(v[None], torch.as_tensor(np.asarray(data.faces)), torch.as_tensor(data.landmark_faces),
+                         torch.as_tensor(data.landmark_bary))[0].numpy()
+    inner = np.zeros(len(v), bool)
+    for name in ("eyeballs", "eye_cavities", "mouth_interior"):
+        inner[data.regions.get(name, [])] = True
+    eyes = [_inside_loop(data, lmk, loop, hull=True) for loop in EYE_REGION_LOOPS]
+    masks = {"eye_region": eyes[0] | eyes[1], "forehead": _inside_loop(data, lmk, FOREHEAD_LOOP),
+             "nose": _inside_loop(data, lmk, NOSE_LOOP, hull=True)}
+    regions = dict(data.regions) | {k: np.nonzero(masks[k] & ~inner)[0] for k in missing}
+    return replace(data, regions=regions)
 
 
 def scalp_top_back(rest, scalp):
@@ -94,9 +176,13 @@ class NeuralHeadAvatar(Avatar):
         self.frames = nn.ParameterDict({k: nn.Parameter(v) for k, v in self.params_from_tracking(tracking).items()})
         self.geometry_net = GeometryNet(V, config.embed_dim, config.geo_layers, config.geo_width, cond_dim=3,
                                         max_offset=config.max_offset)
+        # the mouth condition (App. A.2.2): a rotation and inner-lip distances (mouth_condition)
+        self.mouth_pairs = INNER_LIP_PAIRS_10 if config.mouth_condition == "neck10" else LIP_PAIRS
+        self.mouth_rotation = "root_neck" if config.mouth_condition == "neck10" else "jaw"
         self.texture_net = TextureNet(config.tex_grid, config.tex_channels, config.tex_layers, config.tex_width,
-                                      cond_dim=3 + len(LIP_PAIRS), mouth_grid_size=config.tex_mouth_grid,
-                                      normal_channels=tuple(config.normal_channels), head_width=config.tex_head_width)
+                                      cond_dim=3 + len(self.mouth_pairs), mouth_grid_size=config.tex_mouth_grid,
+                                      normal_channels=tuple(config.normal_channels), head_width=config.tex_head_width,
+                                      mapping_width=config.tex_mapping_width, last_width=config.tex_last_width or None)
         faces = self.head.faces
         region = lambda name: self.head.region(name) if name in self.head.region_names else torch.zeros(0, dtype=torch.long)  # noqa: E731
         # dynamic (neck-pose dependent) offsets only on the neck, faded smoothly into the head
@@ -105,13 +191,26 @@ class NeuralHeadAvatar(Avatar):
         self.register_buffer("neck_fade", laplacian_smooth(neck, faces, 0.5, iterations=10)[:, :1])
         # the vertices with dynamic offsets: G's conditioned evaluation runs on these only
         self.register_buffer("neck_rows", torch.nonzero(self.neck_fade[:, 0] > 0)[:, 0], persistent=False)  # derived
-        lap = torch.full((V,), 1.0)
-        for name, w in (LAPLACIAN_WEIGHTS | {"scalp": config.laplacian_scalp}).items():
-            lap[region(name)] = w
         scalp = torch.zeros(V, dtype=torch.bool)
         scalp[region("scalp")] = True
+        self.table3 = config.laplacian_regions == "table3"  # a Python flag: the joint stage doubles the weights
+        if self.table3:  # App. Table 3 (geometry stage)
+            lap = torch.full((V,), TABLE3_LAPLACIAN["face"])
+            for name, w in TABLE3_LAPLACIAN.items():
+                lap[region(name)] = w
+        else:
+            lap = torch.full((V,), 1.0)
+            for name, w in (LAPLACIAN_WEIGHTS | {"scalp": config.laplacian_scalp}).items():
+                lap[region(name)] = w
         lap[scalp_top_back(rest, scalp)] *= config.laplacian_top_back_factor
         self.register_buffer("laplacian_weight", lap)
+        self.laplacian_l1 = config.laplacian_norm == "l1"
+        # Laplace-Beltrami (cotangent) weights of the template's 1-ring, fixed (App. A.3's lambda*)
+        self.cotangent = config.laplacian_operator == "cotangent"
+        cot_edges, cot_weights = (cotangent_weights(template.v_template, template.faces) if self.cotangent
+                                  else (torch.zeros(0, 2, dtype=torch.long), torch.zeros(0)))
+        self.register_buffer("cot_edges", cot_edges, persistent=False)  # derived
+        self.register_buffer("cot_weights", cot_weights, persistent=False)  # derived
         # With laplacian_scalp_shell the scalp's Laplacian acts on the hair's thickness along the
         # template normal (and on the tangential rest): an even shell of hair costs nothing there,
         # so the thickness the outline measures on the top and sides may carry over to the unseen back.
@@ -137,6 +236,7 @@ class NeuralHeadAvatar(Avatar):
         edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         edges = torch.unique(torch.sort(edges, 1).values, dim=0)
         self.register_buffer("scalp_edges", edges[scalp[edges].all(1)])
+        self.edge_mean = config.edge_mode == "mean"
         self.register_buffer("uv_corners", self.head.face_corner_uvs())
         # The rows above train_ring's mean row (the template's own open neck boundary: NHA's cut, or 3 cm
         # lower with the lower neck kept), with the protocol's head region, bound the area of the
@@ -202,13 +302,21 @@ class NeuralHeadAvatar(Avatar):
         return verts, lmk, offsets
 
     def mouth_condition(self, params: dict[str, torch.Tensor], landmarks: torch.Tensor | None) -> torch.Tensor:
-        """(B, 3 + 3): effective (limited) jaw rotation and inner-lip distances (in cm) -- NHA's
-        mouth conditions."""
+        """(B, 3 + P): NHA's mouth condition -- a rotation (axis-angle) and the distances (cm)
+        of P inner-lip landmark pairs of the posed model (``mouth_pairs``; zeros for models
+        without MediaPipe's landmarks). ``quick``: the effective (limited) jaw rotation and 3
+        pairs; App. A.2.2 (``mouth_condition`` neck10): the rotation that applies to the mouth
+        region, global (root) composed with neck, and 10 pairs."""
         if landmarks is not None and self.has_lips:
-            d = torch.stack([(landmarks[:, a] - landmarks[:, b]).norm(dim=-1) for a, b in LIP_PAIRS], -1) * 100
+            d = torch.stack([(landmarks[:, a] - landmarks[:, b]).norm(dim=-1) for a, b in self.mouth_pairs], -1) * 100
         else:
-            d = params["jaw_pose"].new_zeros(params["jaw_pose"].shape[0], len(LIP_PAIRS))
-        return torch.cat([self.head.effective_poses({"jaw_pose": params["jaw_pose"]})["jaw_pose"], d], -1)
+            d = params["jaw_pose"].new_zeros(params["jaw_pose"].shape[0], len(self.mouth_pairs))
+        if self.mouth_rotation == "jaw":
+            rotation = self.head.effective_poses({"jaw_pose": params["jaw_pose"]})["jaw_pose"]
+        else:
+            poses = self.head.effective_poses({k: params[k] for k in ("root_pose", "neck_pose")})
+            rotation = roma.rotmat_to_rotvec(pose_to_rotmats(poses["root_pose"]) @ pose_to_rotmats(poses["neck_pose"]))
+        return torch.cat([rotation, d], -1)
 
     # ---- rendering -----------------------------------------------------------------------
     def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,
@@ -314,18 +422,37 @@ class NeuralHeadAvatar(Avatar):
         return [px[b][cos[b].abs() < max_cos] for b in range(len(v))]
 
     # ---- regularisers ----------------------------------------------------------------------
-    def laplacian_term(self, offsets: torch.Tensor) -> torch.Tensor:
-        """Region-weighted squared uniform Laplacian of the offsets (= the Laplacian of the offset
-        mesh minus that of the template, NHA's E_reg,lapl). Squared rather than NHA's L1: an L1
-        subgradient keeps its full size on an already smooth face and, through the shared
-        network, drowned the silhouette signal that grows hair. On ``shell_vertices`` the
-        Laplacian is that of (tangential offset, thickness along the template normal) instead."""
-        energy = self._umbrella(offsets).pow(2).sum(-1)
+    def laplacian_term(self, offsets: torch.Tensor, stage: str | None = None) -> torch.Tensor:
+        """Region-weighted Laplacian of the offsets (B, V, 3) (= the Laplacian of the offset mesh
+        minus that of the template, NHA's E_reg,lapl), the mean over vertices and frames.
+
+        ``quick``: the uniform (umbrella) Laplacian, squared -- rather than NHA's L1: an L1
+        subgradient keeps its full size on an already smooth face and, through the shared network,
+        drowned the silhouette signal that grows hair. ``paper`` (App. A.3): the template's
+        Laplace-Beltrami operator (``laplacian_operator`` cotangent), L1 over the components
+        (``laplacian_norm`` l1), Table 3's weights doubled in the ``joint`` stage. On
+        ``shell_vertices`` the Laplacian is that of (tangential offset, thickness along the
+        template normal) instead."""
+        norm = (lambda d: d.abs().sum(-1)) if self.laplacian_l1 else (lambda d: d.pow(2).sum(-1))  # noqa: E731
+        energy = norm(self._laplacian(offsets))
         if self.shell_laplacian:
             thickness = (offsets * self.rest_normals).sum(-1, keepdim=True)
             split = torch.cat([offsets - thickness * self.rest_normals, thickness], -1)  # (B, V, 4)
-            energy = torch.where(self.shell_vertices, self._umbrella(split).pow(2).sum(-1), energy)
-        return (energy * self.laplacian_weight).mean()
+            energy = torch.where(self.shell_vertices, norm(self._laplacian(split)), energy)
+        weight = self.laplacian_weight * (2.0 if self.table3 and stage == "joint" else 1.0)
+        return (energy * weight).mean()
+
+    def _laplacian(self, values: torch.Tensor) -> torch.Tensor:
+        """(B, V, C): the configured Laplacian of per-vertex ``values`` -- cotangent
+        (:meth:`_cotangent`) or uniform (:meth:`_umbrella`)."""
+        return self._cotangent(values) if self.cotangent else self._umbrella(values)
+
+    def _cotangent(self, values: torch.Tensor) -> torch.Tensor:
+        """(B, V, C): sum_j w_ij (x_j - x_i) / sum_j |w_ij| over each vertex's 1-ring, w_ij the
+        template's cotangent weights (``cot_edges``, ``cot_weights``: :func:`cotangent_weights`) --
+        the Laplace-Beltrami operator, normalised so it is in the units of ``values``. Zero on
+        any function linear over a flat patch."""
+        return apply_laplacian(values, self.cot_edges, self.cot_weights)
 
     def _umbrella(self, values: torch.Tensor) -> torch.Tensor:
         """(B, V, C): mean of each vertex's neighbours minus the vertex; with the face cut the
@@ -339,14 +466,44 @@ class NeuralHeadAvatar(Avatar):
         return mean - values
 
     def edge_term(self, vertices: torch.Tensor) -> torch.Tensor:
-        """NHA's scalp edge-length term, relative to the template: scalp edges stretched beyond
-        1.5x their template length (large hair offsets) are penalised by the excess ratio."""
+        """NHA's scalp edge-length term on ``vertices`` (B, V, 3), the mean over scalp edges and
+        frames. ``edge_mode`` template (``quick``): relative to the template, scalp edges stretched
+        beyond 1.5x their template length (large hair offsets) are penalised by the excess ratio.
+        ``mean`` (App. A.3): an edge e_i longer than 1.5x the frame's mean scalp edge e_bar costs
+        (e_i - e_bar) / e_bar -- the paper's e_i - e_bar in units of e_bar (held constant), so the
+        weight does not depend on the mesh density."""
         if len(self.scalp_edges) == 0:
             return vertices.new_zeros(())
         a, b = self.scalp_edges[:, 0], self.scalp_edges[:, 1]
         e = (vertices[:, a] - vertices[:, b]).norm(dim=-1)
+        if self.edge_mean:
+            mean = e.mean(-1, keepdim=True).detach()
+            return torch.where(e > 1.5 * mean, e / mean - 1, torch.zeros_like(e)).mean()
         e0 = (self.head.v_template[a] - self.head.v_template[b]).norm(dim=-1).clamp(min=1e-6)
         return torch.relu(e / e0 - 1.5).mean()
+
+
+def cotangent_weights(vertices: np.ndarray, faces: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cotangent Laplacian of a mesh ((V, 3) metres, (F, 3)) as directed 1-ring edges
+    (E, 2) long i -> j and weights (E,) float32: w_ij = (cot a_ij + cot b_ij) / 2 (libigl's
+    cotmatrix), divided by sum_j |w_ij| so each vertex's row sums to one in absolute value."""
+    import igl
+    import scipy.sparse as sp
+
+    L = sp.coo_matrix(igl.cotmatrix(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)))
+    off = L.row != L.col
+    i, j, w = L.row[off], L.col[off], L.data[off]
+    total = np.bincount(i, weights=np.abs(w), minlength=len(vertices))
+    w = w / np.maximum(total[i], 1e-12)
+    return torch.as_tensor(np.stack([i, j], 1), dtype=torch.long), torch.as_tensor(w, dtype=torch.float32)
+
+
+def apply_laplacian(values: torch.Tensor, edges: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """(..., V, C): sum_j w_ij (x_j - x_i) over the directed edges i -> j (``edges`` (E, 2) long,
+    ``weights`` (E,)) of per-vertex ``values`` (..., V, C)."""
+    i, j = edges.T
+    diff = values.index_select(-2, j) - values.index_select(-2, i)
+    return torch.zeros_like(values).index_add_(-2, i, weights.to(values.dtype)[:, None] * diff)
 
 
 def _edges_without_face_to_scalp(faces: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor, V: int) -> torch.Tensor:

@@ -38,14 +38,16 @@ class MappingNetwork(nn.Module):
 
 
 class FiLMSiren(nn.Module):
-    """SIREN MLP of ``layers`` FiLM layers of ``width``; inputs (B, N, in_dim); FiLM (B, layers, width).
+    """SIREN MLP of ``layers`` FiLM layers of ``width`` (the last ``last_width`` wide, default
+    ``width``); inputs (B, N, in_dim); FiLM (B, layers, >= width) -> (B, N, last_width).
 
     Initialisation follows SIREN (first layer U(-1/in, 1/in) * omega0 via ``first_omega``).
     """
 
-    def __init__(self, in_dim: int, layers: int, width: int, first_omega: float = 30.0):
+    def __init__(self, in_dim: int, layers: int, width: int, first_omega: float = 30.0, last_width: int | None = None):
         super().__init__()
-        self.linears = nn.ModuleList([nn.Linear(in_dim if i == 0 else width, width) for i in range(layers)])
+        widths = [width] * (layers - 1) + [last_width or width]
+        self.linears = nn.ModuleList([nn.Linear(in_dim if i == 0 else width, widths[i]) for i in range(layers)])
         with torch.no_grad():
             for i, lin in enumerate(self.linears):
                 bound = 1 / lin.in_features if i == 0 else math.sqrt(6 / lin.in_features) / first_omega
@@ -57,7 +59,8 @@ class FiLMSiren(nn.Module):
             h = lin(x)
             if i == 0:
                 h = h * self.first_omega
-            x = torch.sin(gamma[:, None, i] * h + beta[:, None, i])
+            n = h.shape[-1]
+            x = torch.sin(gamma[:, None, i, :n] * h + beta[:, None, i, :n])
         return x
 
 
@@ -138,28 +141,33 @@ class TextureNet(nn.Module):
     static texture). Two heads summed before the tanh: a linear one on the SIREN feature, and one
     that concatenates it with the normal encoder's feature of the pixel's normal patch (a linear
     FiLM layer, then linear) -- the path for view- and expression-dependent shading, and through
-    which the photometric term reaches the geometry's normals. Output RGB in [0, 1]."""
+    which the photometric term reaches the geometry's normals. Output RGB in [0, 1].
+
+    App. A.2.2's sizes: ``layers`` 8 x ``width`` 256 with ``last_width`` 128, a mapping network of
+    3 x ``mapping_width`` 256 (as G's), normal encoder 128-128-32, ``head_width`` 128."""
 
     def __init__(self, grid_size: int = 256, grid_channels: int = 64, layers: int = 8, width: int = 256,
                  cond_dim: int = 8, mouth_grid_size: int = 64, normal_channels: tuple[int, ...] = (128, 128, 32),
-                 head_width: int = 128):
+                 head_width: int = 128, mapping_width: int = 128, last_width: int | None = None):
         super().__init__()
         self.grid = nn.Parameter(1e-2 * torch.randn(1, grid_channels, grid_size, grid_size))
         self.mouth_grid = nn.Parameter(1e-2 * torch.randn(1, grid_channels, mouth_grid_size, mouth_grid_size))
-        film_width = max(width, head_width)
+        film_width = max(width, head_width, last_width or 0)
         # FiLM of the SIREN layers, the head's FiLM layer, and the normal encoder's convolutions
-        self.mapping = MappingNetwork(cond_dim, layers + 1 + len(normal_channels), film_width, hidden_width=128)
-        self.siren = FiLMSiren(3 + grid_channels, layers, width)
-        self.rgb = nn.Linear(width, 3)
+        self.mapping = MappingNetwork(cond_dim, layers + 1 + len(normal_channels), film_width, hidden_width=mapping_width)
+        self.siren = FiLMSiren(3 + grid_channels, layers, width, last_width=last_width)
+        out = last_width or width  # the SIREN feature's width
+        self.rgb = nn.Linear(out, 3)
         self.normal_encoder = NormalEncoder(normal_channels)
-        self.head_film = nn.Linear(width + normal_channels[-1], head_width)
+        self.head_film = nn.Linear(out + normal_channels[-1], head_width)
         self.head_rgb = nn.Linear(head_width, 3)
         with torch.no_grad():
             bound = math.sqrt(6 / self.head_film.in_features)
             self.head_film.weight.uniform_(-bound, bound)
             self.head_rgb.weight.mul_(0.1)  # starts as a small correction of the first head
             self.head_rgb.bias.zero_()
-        self.cond_dim, self.layers, self.width, self.head_width = cond_dim, layers, width, head_width
+        self.cond_dim, self.layers, self.head_width = cond_dim, layers, head_width
+        self.width = max(width, last_width or 0)  # the SIREN's FiLM width (its widest layer)
 
     @staticmethod
     def _sample(grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
