@@ -260,3 +260,34 @@ def test_paper_preset_trains_on_the_tiny_dataset_with_its_epoch_schedule_and_ear
     idx = torch.tensor(run.assets.rows("train"))
     moved = (run.avatar.frames["expression"].detach()[idx] - start["expression"][idx]).abs().sum(-1)
     assert (moved[-2:] == 0).all() and (moved[:-2] > 0).any()
+
+
+def test_early_stop_ends_the_joint_stage_after_patience_checks_without_a_new_best(monkeypatch):
+    from headforge.avatars import engine
+    from headforge.avatars.nha.method import NHAMethod
+
+    config = NHAConfig.quick()
+    config.geometry_iters, config.texture_iters, config.joint_iters = 10, 10, 100
+    config.early_stop_frames, config.early_stop_every, config.early_stop_patience = 2, 5, 2
+    losses = iter([0.5, 0.4, 0.45, 0.42, 0.3])  # best at the 2nd check; the 3rd and 4th do not improve
+    seen = []
+
+    def fake_validate(method, avatar, data, cfg, out_dir=None):
+        seen.append(data)
+        return {"l1": next(losses), "ssim": 1.0}
+
+    monkeypatch.setattr(engine, "validate", fake_validate)
+
+    class Frames(list):  # 12 training frames
+        def subset(self, rows):
+            return rows.tolist()
+
+    ctx = SimpleNamespace(config=config, iteration=0, train=Frames(range(12)), avatar=None, state={}, log=lambda m: None)
+    method = NHAMethod()
+    while ctx.iteration < config.total_iters:  # the engine's loop around the hook
+        ctx.iteration += 1
+        method.after_iteration(ctx)
+    checks = ctx.state["early_stop"]["checks"]
+    assert [c[0] for c in checks] == [25, 30, 35, 40]  # every 5 joint iterations, none before the joint stage
+    assert seen[0] == [10, 11]  # the last two training frames
+    assert ctx.state["early_stop"]["stopped_at"] == 40 and ctx.iteration == config.total_iters
