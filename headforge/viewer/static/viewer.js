@@ -279,10 +279,12 @@ function draw() {
 }
 
 // ---- loop and API -----------------------------------------------------------------------------------
-const clock = new THREE.Clock();
+let last = performance.now();
 let frameCount = 0;
 renderer.setAnimationLoop(() => {
-  const dt = clock.getDelta();
+  const now = performance.now();
+  const dt = (now - last) / 1000;
+  last = now;
   if (playing && duration > 0) time = (time + dt) % duration;
   draw();
   if (frameCount++ % 6 === 0) syncSliders();
