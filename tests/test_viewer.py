@@ -249,3 +249,22 @@ def test_a_point_avatar_exports_its_sequence_and_is_viewed_relightable(rendered,
         assert get(server.url + "pose?frame=99")[0] == 400 and get(server.url + "x/pose")[0] == 404
     finally:
         server.stop()
+
+
+def test_the_view_command_serves_until_interrupted(open_head_nha_run):
+    """``headforge view RUN --port 0`` prints its URL (on 127.0.0.1) and serves the scene until
+    it is interrupted."""
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "headforge.cli", "view", str(open_head_nha_run), "--port", "0",
+                             "--texture-size", "32"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("http://127.0.0.1:"), url
+        status, body = get(url + "scene.json")
+        assert status == 200 and json.loads(body)["kind"] == "mesh"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
