@@ -3,7 +3,10 @@
 
     python benchmarks/table1.py BENCH [--nha RUN_DIR_PREFIX] [--every 2]
 
-RUN_DIR_PREFIX + "subject_00" etc. are the NHA run folders. Prints a Markdown table and, last,
+RUN_DIR_PREFIX + "subject_00" etc. are the NHA run folders (trained with `headforge fit nha SUBJECT
+--supervision gt` for the seed's protocol: NHA Sec. 4.1 trains its synthetic subjects on their GT
+normal maps, semantic maps and landmarks; each run's supervision is printed and in the JSON).
+Prints a Markdown table and, last,
 one JSON line with every figure. With NHA runs it adds the normal error of both methods on the
 pixels both cover (``paired_*``; `headforge.metrics.benchmark.paired_normal_error`): the
 protocol's own normal error scores each method on its own coverage, so the bald tracked model is
@@ -30,7 +33,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=2)
     args = parser.parse_args()
     subjects = sorted(p for p in args.bench.iterdir() if (p / "gt" / "geometry.safetensors").is_file())
-    rows = {}
+    rows, supervision = {}, {}
     for subject in subjects:
         methods = {"tracked head model": subject}
         if args.nha and Path(args.nha + subject.name).is_dir():
@@ -40,18 +43,22 @@ def main() -> None:
             rows.setdefault(method, {})[subject.name] = {k: r["mean"][k] for k in KEYS} | {
                 "frames": r["frames"], "hair": r["hair"]}
         if "NHA (headforge)" in methods:
+            saved = json.loads((methods["NHA (headforge)"] / "run.json").read_text())["config"]
+            supervision[subject.name] = saved.get("supervision", "predicted")
             pair = paired_normal_error(methods["NHA (headforge)"], subject, subject, every=args.every)["mean"]
             for method, prefix in (("NHA (headforge)", ""), ("tracked head model", "reference_")):
                 rows[method][subject.name] |= {f"paired_{k}": pair[prefix + k] for k in PAIRED}
             rows["NHA (headforge)"][subject.name]["paired_common_coverage"] = pair["common_coverage"]  # one per pair
     names = [s.name for s in subjects]
+    if supervision:
+        print("NHA runs' supervision: " + ", ".join(f"{k} {v}" for k, v in supervision.items()) + "\n")
     print("| metric | method | " + " | ".join(f"{n} ({rows['tracked head model'][n]['hair']})" for n in names) + " |")
     print("| --- | --- |" + " --- |" * len(names))
     for k in KEYS + tuple(f"paired_{k}" for k in PAIRED) + ("paired_common_coverage",):
         for method, per in rows.items():
             print(f"| {k} | {method} | " + " | ".join(f"{per[n][k]:.3f}" if k in per.get(n, {}) else "–"
                                                       for n in names) + " |")
-    print(json.dumps(rows))
+    print(json.dumps(rows | {"supervision": supervision}))
 
 
 if __name__ == "__main__":

@@ -24,13 +24,14 @@ def build_avatar(dataset, config):
     return build(assets, config), assets
 
 
-def FrameData(dataset, split, resolution):
+def FrameData(dataset, split, resolution, supervision="predicted"):
     from headforge.avatars.frames import FrameData as Frames
     from headforge.avatars.run import RunAssets
     from headforge.metrics.protocol import TrackedHead
 
     assets = RunAssets.from_dataset(dataset)
-    return Frames(dataset, split, resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    return Frames(dataset, split, resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]),
+                  supervision=supervision)
 
 
 def _cameras(K, B, res):
@@ -143,6 +144,14 @@ def test_the_energies_reach_below_the_neck_cut_and_the_scores_follow_the_tracked
     region = batch["region"]  # the protocol's head region: from the tracked head model, per frame
     assert region.any(-1).any(-1).all() and (~region).any()
     assert (region & (batch["mask"] > 0.5)).sum() > 0.8 * ((batch["mask"] > 0.5) & trained).sum() * 0.5
+    # the energies also see the protocol's region where it reaches below the rows (a looking-down
+    # chin): pixels below the rows count once the region holds them, and not before
+    below = ~trained & (torch.rand(trained.shape, generator=torch.Generator().manual_seed(0)) < 0.3)
+    flipped = dict(batch, mask=torch.where(below, 1 - batch["mask"], batch["mask"]))
+    for reach, counts in ((batch["region"] & trained, False), (batch["region"] | below, True)):
+        sil = [losses(avatar, dict(b, region=reach), data.K, tiny_config, "align")["silhouette"]
+               for b in (batch, flipped)]
+        assert torch.isclose(sil[0], sil[1]) != counts
 
 
 def test_the_scalp_laplacian_weight_is_a_config_field(synth_bench, tiny_config):
@@ -819,3 +828,64 @@ def test_in_training_validation_fits_for_val_tto_steps_and_restores_the_frames(m
     engine.validate(None, avatar, data, config)
     assert calls == [config.val_tto_steps]
     assert avatar.frames["expression"].abs().sum() == 0  # validate restored its fit
+
+
+def test_gt_supervision_feeds_nhas_normal_and_semantic_terms_on_training_frames_only(synth_bench, tiny_config):
+    """--supervision gt: a synth subject's training frames carry its GT landmarks (in place of
+    the detections), normal and label maps; the normal and semantic terms train the geometry
+    from them; the validation frames (test-time fitting) get none of it."""
+    from safetensors.numpy import load_file
+
+    from headforge.avatars.nha.method import losses
+
+    dataset = synth_bench[0] / "subject_00"
+    res = tiny_config.resolution
+    train = FrameData(dataset, "train", res, supervision="gt")
+    val = FrameData(dataset, "val", res, supervision="gt")
+    assert "gt_known" not in val.batch(torch.arange(2)) and train.gt_known.all()
+    gt = load_file(str(dataset / "gt/landmarks.safetensors"))["landmarks"]
+    scale = res / 224
+    expected = (torch.from_numpy(gt[train.index.numpy()]) + 0.5) * scale - 0.5
+    assert torch.allclose(train.landmarks, expected)
+    predicted = FrameData(dataset, "train", res)
+    assert not torch.allclose(predicted.landmarks, train.landmarks)  # the detections are another thing
+    avatar, _ = build_avatar(dataset, tiny_config)
+    batch = train.batch(torch.arange(2))
+    assert batch["gt_normals"].shape == (2, res, res, 3) and batch["gt_labels"].max() > 0
+    terms = losses(avatar, batch, train.K, tiny_config, "geometry")
+    assert terms["normal"] > 0 and terms["classes"] > 0
+    avatar.zero_grad()
+    (terms["normal"] + terms["classes"]).backward()
+    assert avatar.geometry_net.embedding.grad.abs().sum() > 0
+    assert "normal" not in losses(avatar, predicted.batch(torch.arange(2)), train.K, tiny_config, "geometry")
+    with pytest.raises(HeadforgeError, match="supervision must be"):
+        FrameData(dataset, "train", res, supervision="oracle")
+
+
+def test_the_normal_and_semantic_terms_vanish_on_their_own_ground_truth():
+    """E_normal of a normal map against itself is 0 and grows with a bump the render lacks;
+    E_semantic of class maps that are the labels' own regions is 0."""
+    from headforge.avatars.nha.method import GT_LABELS_OF_CLASS, normal_term, semantic_gt_term
+    from headforge.avatars.nha.model import SEMANTIC_CLASSES
+
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1, 1, 32), indexing="ij")
+    inside = (xx ** 2 + yy ** 2 < 0.8)[None]
+    z = -(1 - (xx ** 2 + yy ** 2).clamp(max=1)).sqrt()
+    normals = torch.nn.functional.normalize(torch.stack([xx, yy, z], -1), dim=-1)[None] * inside[..., None]
+    area = torch.ones_like(inside)
+    assert normal_term(normals, normals, inside, area) == 0
+    bump = normals.clone()
+    bump[0, 14:18, 14:18, 0] += 0.3
+    assert normal_term(normals, torch.nn.functional.normalize(bump, dim=-1), inside, area) > 0.01
+    labels = torch.zeros(1, 32, 32, dtype=torch.long)
+    labels[0, :16] = GT_LABELS_OF_CLASS["hair"][0]
+    labels[0, 16:] = GT_LABELS_OF_CLASS["skin"][0]
+    labels[0, 20:22, 10:12] = GT_LABELS_OF_CLASS["eyes"][0]
+    labels[0, 28:, 14:18] = 5  # the mouth's inside: in no class, not scored
+    classes = torch.stack([torch.isin(labels, torch.tensor(GT_LABELS_OF_CLASS[n])) for n in SEMANTIC_CLASSES], -1).float()
+    assert semantic_gt_term(classes, labels, area) == 0
+    wrong = classes.clone()
+    wrong[0, 28:, 14:18] = 0.7  # anything over the mouth's inside costs nothing
+    assert semantic_gt_term(wrong, labels, area) == 0
+    wrong[0, :4] = classes[0, -1:].expand(4, -1, -1)  # the top rows called skin instead of hair
+    assert semantic_gt_term(wrong, labels, area) > 0

@@ -23,6 +23,7 @@ class EngineConfig:
     lr_decay_start: float = 0.7  # fraction of the iterations after which all learning rates decay...
     lr_final: float = 0.1  # ...along a half cosine to this multiple at the end (1: constant rates)
     seed: int = 0
+    supervision: str = "predicted"  # gt: a synth subject's GT normals, labels, landmarks on the training frames (NHA Sec. 4.1)
 
     nonnegative_prefixes = ("w_",)  # fields that are energy weights: < 0 would reward the error
 

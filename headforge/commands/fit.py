@@ -40,6 +40,9 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
         iterations: Optional[int] = typer.Option(None, help="scale the method's schedule to this many iterations"),
         resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)"),
         device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]"),
+        supervision: str = typer.Option("predicted", help="predicted: what a real clip gives (detected landmarks, "
+                                        "masks); gt: a headforge synth subject's ground-truth normal maps, labels and "
+                                        "landmarks supervise the training frames (NHA's synthetic protocol)"),
         set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE",
                                                  help="override a config field, e.g. --set tex_grid=256 (repeatable)")) -> None:
     """Train an avatar (nha: Neural Head Avatars -- geometry MLP offsets + neural texture on the tracked
@@ -51,7 +54,7 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
     from headforge.avatars.engine import fit as run_fit
 
     m = registry.get(method)
-    config = make_config(m, preset, iterations, resolution, set_ or [], dataset)
+    config = make_config(m, preset, iterations, resolution, [f"supervision={supervision}", *(set_ or [])], dataset)
     target = distributed.init_from_environment(device)  # the device as asked when not under torchrun
     try:
         if distributed.is_main():

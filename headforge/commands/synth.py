@@ -16,7 +16,7 @@ def synth(output: Path = typer.Option(..., "-o", "--output", help="benchmark fol
           val_frames: int = typer.Option(210, help="validation frames per subject (unseen expressions/poses)"),
           resolution: int = typer.Option(512, help="image size in pixels"),
           seed: int = typer.Option(0, help="random seed (subjects and motion)"),
-          gt_every: int = typer.Option(5, help="full ground truth (meshes, normals, views, relit, albedo) every N frames"),
+          gt_every: int = typer.Option(5, help="full ground truth (meshes, views, relit, albedo; normals and labels of validation frames) every N frames; every training frame has its normals, labels and landmarks"),
           supersample: int = typer.Option(2, help="anti-aliasing: render at N x N samples per pixel")) -> None:
     """Synthetic talking-head subjects (full anny body, hair, skin albedo) with exact ground truth,
     each written as a tracked headforge dataset plus gt/."""

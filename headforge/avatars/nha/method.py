@@ -137,8 +137,13 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     params = avatar.frame_params(batch["index"]) if params is None else params
     photometric = stage in ("texture", "joint", "align_rgb")
     semantic = config.w_semantic > 0 and stage != "texture"
+    # ground truth (a synth subject's training frames with --supervision gt): NHA's normal and
+    # semantic terms on the GT maps; a real clip has neither (no pretrained predictor here)
+    gt = batch.get("gt_known")
+    gt = gt if gt is not None and stage != "texture" and bool(gt.any()) else None
     r = avatar.render(params, Cameras.at_origin(K, B, res), background=1.0, texture=photometric, face_region=semantic,
-                      matte=False)
+                      matte=False, normals=gt is not None and config.w_normal > 0,
+                      classes=gt is not None and config.w_classes > 0)
     area = energy_area(batch["region"], avatar.train_ring, r.vertices, K, res)
     gt_mask = batch["mask"] * area
     out = {}
@@ -157,6 +162,12 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         # NHA's semantic term for the one region we can segment without a face parser: the face oval
         known = batch["face_known"][:, None, None]
         out["semantic"] = config.w_semantic * ((r.face_region - batch["face_region"]).abs() * area * known).mean()
+    if gt is not None:
+        known = area & gt[:, None, None]
+        if config.w_normal > 0:
+            out["normal"] = config.w_normal * normal_term(r.normals, batch["gt_normals"], r.fragments.face_id >= 0, known)
+        if config.w_classes > 0:
+            out["classes"] = config.w_classes * semantic_gt_term(r.classes, batch["gt_labels"], known)
     if config.w_contour > 0:
         out["contour"] = config.w_contour * contour_term(avatar, r.vertices, gt_mask, area, K, res, r.fragments.face_id >= 0)
     if photometric:
@@ -182,6 +193,54 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         if B > 1:  # surface consistency between the frames of the batch (random pairs)
             out["surface"] = config.w_surface * (r.offsets[0] - r.offsets[1]).abs().mean()
     return out
+
+
+# synth's labels (headforge.bench.synthetic.LABELS) of each of SEMANTIC_CLASSES; the mouth's
+# inside (5) is in no class and left out, body (7) and background (0) are outside every class
+GT_LABELS_OF_CLASS = {"skin": (1, 2, 6), "eyes": (4,), "hair": (3,)}
+GT_UNSCORED_LABELS = (5,)
+
+
+def image_laplacian(x: torch.Tensor) -> torch.Tensor:
+    """(B, H, W, C) 4-neighbour image Laplacian of ``x`` (B, H, W, C); zero on the border rows
+    and columns."""
+    out = torch.zeros_like(x)
+    inner = x[:, 1:-1, 1:-1]
+    out[:, 1:-1, 1:-1] = x[:, :-2, 1:-1] + x[:, 2:, 1:-1] + x[:, 1:-1, :-2] + x[:, 1:-1, 2:] - 4 * inner
+    return out
+
+
+def with_neighbours(valid: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) bool: ``valid`` pixels whose four neighbours are valid too (where the Laplacian
+    sees only valid values)."""
+    out = torch.zeros_like(valid)
+    out[:, 1:-1, 1:-1] = (valid[:, 1:-1, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 2:, 1:-1]
+                          & valid[:, 1:-1, :-2] & valid[:, 1:-1, 2:])
+    return out
+
+
+def normal_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
+    """NHA's E_normal (Sec. 3.2): L1 between the image-space Laplacians of the rendered and the
+    ground-truth camera-space normal maps (B, H, W, 3; ground truth of length < 0.5 off the
+    subject), summed over the channels, mean over the pixels of ``area`` (B, H, W) bool where
+    both maps are defined with their four neighbours (``covered``: the render's hard coverage).
+    It matches detail (folds, the hair's relief), not the normals' absolute directions."""
+    valid = with_neighbours(covered & (gt_normals.norm(dim=-1) > 0.5)) & area
+    diff = (image_laplacian(normals) - image_laplacian(gt_normals)).abs().sum(-1)
+    return (diff * valid).sum() / valid.sum().clamp(min=1)
+
+
+def semantic_gt_term(classes: torch.Tensor, gt_labels: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
+    """NHA's E_semantic (Sec. 3.2) against ground-truth labels: the soft XOR |S_k - S^_k| of the
+    rendered coverage by each class (``classes`` (B, H, W, C), SEMANTIC_CLASSES) and the labels'
+    region of it (``gt_labels`` (B, H, W) synth labels), summed over the classes, mean over the
+    pixels of ``area`` (B, H, W) bool except the mouth's inside."""
+    from headforge.avatars.nha.model import SEMANTIC_CLASSES
+
+    target = torch.stack([torch.isin(gt_labels, torch.tensor(GT_LABELS_OF_CLASS[name], device=gt_labels.device))
+                          for name in SEMANTIC_CLASSES], -1).to(classes.dtype)
+    scored = area & ~torch.isin(gt_labels, torch.tensor(GT_UNSCORED_LABELS, device=gt_labels.device))
+    return ((classes - target).abs().sum(-1) * scored).sum() / scored.sum().clamp(min=1)
 
 
 def albedo_tv(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:

@@ -151,6 +151,12 @@ def face_oval_vertices(data: HeadModelData) -> np.ndarray:
     return inside & (v[:, 2] > loop[:, 2].min())
 
 
+# NHA's semantic regions (Sec. 3.2: facial skin and neck, eyes, ears, hair) as far as a synth
+# subject's labels name them: synth does not label the ears (they are head skin), so they join the
+# skin; the template's scalp is where the hair grows.
+SEMANTIC_CLASSES = ("skin", "eyes", "hair")
+
+
 @dataclass(kw_only=True)
 class Rendered(AvatarRender):
     """NHA's render: rgb (B, H, W, 3) antialiased on ``background``, coverage (B, H, W), landmarks
@@ -161,6 +167,7 @@ class Rendered(AvatarRender):
     vertices: torch.Tensor  # (B, V, 3) camera space
     offsets: torch.Tensor  # (B, V, 3) canonical offsets
     albedo: torch.Tensor | None = None  # (B, H, W, 3) T's output before shading (``shading`` avatars), 0 off the mesh
+    classes: torch.Tensor | None = None  # (B, H, W, C) antialiased coverage by each of SEMANTIC_CLASSES, or None
 
 
 class NeuralHeadAvatar(Avatar):
@@ -320,11 +327,14 @@ class NeuralHeadAvatar(Avatar):
 
     # ---- rendering -----------------------------------------------------------------------
     def render(self, params: dict[str, torch.Tensor], cameras: Cameras, background: float = 1.0,
-               texture: bool = True, face_region: bool = False, matte: bool = True) -> Rendered:
+               texture: bool = True, face_region: bool = False, matte: bool = True, normals: bool = False,
+               classes: bool = False) -> Rendered:
         """``face_region``: also render the face-oval region's coverage (models with MediaPipe
         landmarks; None otherwise). ``matte``: soften the edge of ``rgb`` and ``coverage`` by the
         fitted ``matte_sigma`` (scaled to the camera's height); off, they are the antialiased
-        render (the training losses use that)."""
+        render (the training losses use that). ``normals``: the camera-space normal map;
+        ``classes``: the antialiased coverage by each of :data:`SEMANTIC_CLASSES` (both with
+        gradients to the vertices; NHA's normal and semantic terms)."""
         verts, lmk, offsets = self.pose(params)
         faces = self.head.faces
         frags = mesh.rasterize(cameras, verts.detach(), faces)
@@ -332,8 +342,12 @@ class NeuralHeadAvatar(Avatar):
         hit = frags.face_id >= 0
         rgb = verts.new_full((B, H, W, 3), background)
         albedo = None
+        bary = mesh.barycentrics(frags, cameras, verts, faces) if (texture or normals or classes) and hit.any() else None
+        normal_map = None
+        if normals and bary is not None:
+            n = mesh.interpolate(vertex_normals(verts, faces), frags, faces, bary)
+            normal_map = torch.nn.functional.normalize(n, dim=-1) * hit[..., None]
         if texture and hit.any():
-            bary = mesh.barycentrics(frags, cameras, verts, faces)
             fid = frags.face_id[hit]
             b = bary[hit]  # (N, 3)
             canon = (self.positions[faces[fid]] * b[..., None]).sum(1)
@@ -352,12 +366,34 @@ class NeuralHeadAvatar(Avatar):
         face_region = face_region and self.has_lips
         if face_region:
             channels.append(self._face_region(frags, cameras, verts))
+        if classes:
+            table = self.semantic_classes().to(verts)
+            channels.append(mesh.interpolate(table, frags, faces, bary) if bary is not None
+                            else verts.new_zeros((B, H, W, table.shape[1])))
         out = mesh.antialias(torch.cat(channels, -1), frags, cameras, verts, faces)
         rgb, coverage = out[..., :3], out[..., 3].clamp(0, 1)
         if matte and self.matte_sigma > 0:
             rgb, coverage = soft_matte(rgb, coverage, float(self.matte_sigma * H / self.matte_resolution), background)
-        return Rendered(rgb, coverage, landmarks=lmk, face_region=out[..., 4].clamp(0, 1) if face_region else None,
-                        fragments=frags, vertices=verts, offsets=offsets, albedo=albedo)
+        first = 5 if face_region else 4
+        return Rendered(rgb, coverage, landmarks=lmk, normals=normal_map,
+                        face_region=out[..., 4].clamp(0, 1) if face_region else None,
+                        fragments=frags, vertices=verts, offsets=offsets, albedo=albedo,
+                        classes=out[..., first:].clamp(0, 1) if classes else None)
+
+    def semantic_classes(self) -> torch.Tensor:
+        """(V, C) one-hot of each template vertex's class in :data:`SEMANTIC_CLASSES` (all zero:
+        no class -- the mouth's inside, which NHA's semantic term leaves out)."""
+        if getattr(self, "_semantic_classes", None) is None:
+            table = torch.zeros(self.head.num_vertices, len(SEMANTIC_CLASSES))
+            table[:, SEMANTIC_CLASSES.index("skin")] = 1.0
+            for name, region in (("eyes", "eyeballs"), ("hair", "scalp"), (None, "mouth_interior")):
+                if region in self.head.region_names:
+                    rows = self.head.region(region)
+                    table[rows] = 0.0
+                    if name is not None:
+                        table[rows, SEMANTIC_CLASSES.index(name)] = 1.0
+            self._semantic_classes = table
+        return self._semantic_classes
 
     @torch.no_grad()
     def geometry(self, params: dict[str, torch.Tensor]) -> Geometry:
