@@ -422,3 +422,14 @@ def test_a_half_written_settings_file_starts_the_run_over(tmp_path):
     assert open_partial(tmp_path / "out", {"resolution": 512}, logs.append) == work
     assert not (work / "stale.txt").exists() and "starting over" in logs[0]
     assert json.loads((work / "settings.json").read_text()) == {"resolution": 512}
+
+
+def test_fit_with_gt_supervision_refuses_a_dataset_without_ground_truth(rendered, tmp_path):
+    """--supervision gt needs a headforge synth subject; a tracked clip (no gt/) is named in one
+    line, and an unknown supervision is refused; neither leaves a run folder that looks trained."""
+    run = tmp_path / "run"
+    assert_refused(invoke("fit", "nha", rendered, "-o", run, "--supervision", "gt", "--iterations", "3",
+                          "--device", "cpu"), "gt/landmarks.safetensors", rendered)
+    assert_refused(invoke("fit", "nha", rendered, "-o", run, "--supervision", "oracle", "--iterations", "3",
+                          "--device", "cpu"), "supervision", "oracle")
+    assert not (run / "checkpoint.safetensors").exists() and not (run / "metrics.json").exists()
