@@ -10,7 +10,10 @@ joints moving with the expression, soft matte) on white at the intrinsics scaled
 
 Figures: ``iou`` the silhouette IoU (coverage > 0.5 on both sides; target >= 0.95), ``psnr``
 the full image on white, ``psnr_head`` over the union of both silhouettes; mean and minimum over
-frames.
+frames. To tell the texture's share of the loss from the rest (geometry, the two renderers),
+NHA avatars are also rendered by headforge with the baked static texture on their full
+geometry (``static``): ``static_vs_full_psnr_head`` is what baking the texture alone loses,
+``glb_vs_static_psnr_head`` the rest.
 
 Usage: python benchmarks/gltf_bake.py RUN [--frames 20] [--size 256] [--texture-size 512]
 Needs chromium and playwright (the dev extra). Prints progress to stderr and one JSON line at the end.
@@ -51,6 +54,11 @@ def main() -> None:
     T = int(seq["translation"].shape[0])
     K = scale_intrinsics(r.assets.intrinsics(r.config.resolution), args.size / r.config.resolution)
     scene = build_scene(args.run, args.texture_size, max_frames=T)
+    baked = None
+    if r.method.name == "nha":
+        from headforge.avatars.nha.export import bake_texture
+
+        baked = torch.from_numpy(bake_texture(r.avatar, args.texture_size))[None]
     server = ViewerServer(scene, port=0).start()
     rows = []
     try:
@@ -72,6 +80,11 @@ def main() -> None:
                 rows.append({"iou": float((a & b).sum() / (a | b).sum().clamp(min=1)),
                              "psnr": float(psnr(got_rgb[None], want_rgb[None])),
                              "psnr_head": float(psnr(got_rgb[None], want_rgb[None], head))})
+                if baked is not None:
+                    static = static_render(r.avatar, {k: v[t:t + 1] for k, v in seq.items()},
+                                           Cameras.at_origin(K, 1, args.size), baked)[0]
+                    rows[-1]["static_vs_full_psnr_head"] = float(psnr(static[None], want_rgb[None], head))
+                    rows[-1]["glb_vs_static_psnr_head"] = float(psnr(got_rgb[None], static[None], head))
                 print(f"frame {t}: {rows[-1]}", file=sys.stderr)
             errors = list(page.errors)
     finally:
@@ -81,10 +94,27 @@ def main() -> None:
         values = np.array([row[key] for row in rows])
         return {"mean": round(float(values.mean()), 4), "min": round(float(values.min()), 4)}
 
+    split = {k: stat(k) for k in ("static_vs_full_psnr_head", "glb_vs_static_psnr_head") if k in rows[0]}
     print(json.dumps({"run": str(args.run), "method": r.method.name, "frames": T, "size": args.size,
                       "texture_size": args.texture_size, "glb_bytes": len(scene.files["avatar.glb"]),
-                      "iou": stat("iou"), "psnr": stat("psnr"), "psnr_head": stat("psnr_head"),
+                      "iou": stat("iou"), "psnr": stat("psnr"), "psnr_head": stat("psnr_head"), **split,
                       "page_errors": errors, "seconds": round(time.perf_counter() - start, 1)}))
+
+
+@torch.no_grad()
+def static_render(avatar, params: dict, cameras, texture: torch.Tensor) -> torch.Tensor:
+    """(1, H, W, 3) on white: an NHA avatar's full geometry (the frame's offsets and joints) with
+    the baked static ``texture`` (1, S, S, 3) in place of its texture network, antialiased."""
+    from headforge.render import mesh
+
+    verts = avatar.pose(params)[0]
+    faces = avatar.head.faces
+    frags = mesh.rasterize(cameras, verts, faces)
+    uv = mesh.interpolate(avatar.uv_corners, frags, faces, per_corner=True)
+    hit = frags.face_id >= 0
+    rgb = torch.where(hit[..., None], mesh.texture(uv, texture), torch.ones(3))
+    out = mesh.antialias(torch.cat([rgb, hit[..., None].float()], -1), frags, cameras, verts, faces)
+    return out[..., :3].clamp(0, 1)
 
 
 if __name__ == "__main__":
