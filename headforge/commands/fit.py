@@ -36,7 +36,7 @@ def make_config(method, preset: str, iterations: Optional[int], resolution: Opti
 def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavatar"),
         dataset: Path = typer.Argument(..., help="a dataset written by headforge track or synth"),
         output: Path = typer.Option(..., "-o", "--output", help="run folder (resumed when it exists)"),
-        preset: str = typer.Option("quick", help="quick (CPU) or paper (the paper's sizes, for a GPU)"),
+        preset: str = typer.Option("quick", help="quick (CPU) or paper (the paper's sizes and choices, e.g. NHA's App. A; for a GPU)"),
         iterations: Optional[int] = typer.Option(None, help="scale the method's schedule to this many iterations"),
         resolution: Optional[int] = typer.Option(None, help="training resolution (default: preset's)"),
         device: str = typer.Option("auto", help="auto (a CUDA GPU when there is one), cpu or cuda[:N]"),
