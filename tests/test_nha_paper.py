@@ -291,3 +291,28 @@ def test_early_stop_ends_the_joint_stage_after_patience_checks_without_a_new_bes
     assert [c[0] for c in checks] == [25, 30, 35, 40]  # every 5 joint iterations, none before the joint stage
     assert seen[0] == [10, 11]  # the last two training frames
     assert ctx.state["early_stop"]["stopped_at"] == 40 and ctx.iteration == config.total_iters
+
+
+def test_render_avatar_takes_the_driving_mode(rendered, tmp_path, tiny_head):
+    from conftest import write_rendered_dataset
+    from make_nha_reference import reference_settings
+    from typer.testing import CliRunner
+
+    from headforge.avatars.engine import fit
+    from headforge.cli import app
+
+    config = NHAConfig.quick()
+    for k, v in (reference_settings() | {"geometry_iters": 2, "texture_iters": 2, "joint_iters": 2, "tto_steps": 1}).items():
+        setattr(config, k, v)
+    fit("nha", rendered, tmp_path / "run", config, log=lambda m: None)
+    driver = write_rendered_dataset(tmp_path / "driver", tiny_head, seed=3)
+    runner = CliRunner()
+    for mode in ("relative", "absolute"):
+        res = runner.invoke(app, ["render", "avatar", str(tmp_path / "run"), "-o", str(tmp_path / f"{mode}.mp4"),
+                                  "--driving", str(driver), "--driving-mode", mode, "--driving-neutral", "2",
+                                  "--max-frames", "2"])
+        assert res.exit_code == 0, res.output
+        assert (tmp_path / f"{mode}.mp4").stat().st_size > 1000
+    res = runner.invoke(app, ["render", "avatar", str(tmp_path / "run"), "-o", str(tmp_path / "x.mp4"),
+                              "--driving", str(driver), "--driving-mode", "sideways"])
+    assert res.exit_code != 0 and "driving-mode" in str(res.exception) + res.output
