@@ -53,7 +53,10 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
     from headforge.avatars import registry
     from headforge.avatars.engine import fit as run_fit
 
+    from headforge.devices import resolve_device
+
     m = registry.get(method)
+    resolve_device(device)  # an unusable --device is named before the dataset is read
     config = make_config(m, preset, iterations, resolution, [f"supervision={supervision}", *(set_ or [])], dataset)
     target = distributed.init_from_environment(device)  # the device as asked when not under torchrun
     try:
