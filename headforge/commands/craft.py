@@ -89,7 +89,9 @@ def train(maps: Path = typer.Argument(..., help="map folder: headforge craft reg
           steps: int | None = typer.Option(None, help="training steps (default: the preset's)"),
           seed: int = typer.Option(0, help="random seed (split and initialisation)"),
           settings: list[str] = typer.Option([], "--set", help="FIELD=VALUE config override, e.g. resolution=32")) -> None:
-    """Train HeadCraft's generative model (and baselines) over displacement maps."""
+    """Train HeadCraft's generative model (and baselines) over displacement maps. Under
+    ``torchrun --nproc-per-node N`` the processes share each batch (gloo, on the CPU)."""
+    from headforge import distributed
     from headforge.craft.generative import train as T
 
     try:
@@ -98,11 +100,19 @@ def train(maps: Path = typer.Argument(..., help="map folder: headforge craft reg
             T.config_class(m)
         opts = T.TrainOptions(preset=preset, holdout=holdout, seed=seed, steps=steps,
                               settings=T.parse_settings(settings, methods))
-        T.prepare_run(maps, output, methods, opts, log=typer.echo)
+        distributed.init_from_environment("cpu")  # under torchrun: join the group (gloo); else nothing
+        if distributed.active() and "vqvae" in methods:
+            raise HeadforgeError("vqvae trains on one process only (its codebook's running averages are per process): "
+                                 "run it without torchrun")
+        if distributed.is_main():
+            T.prepare_run(maps, output, methods, opts, log=typer.echo)
+        distributed.barrier()  # run.json and the training maps exist before the ranks read them
         for m in methods:
             T.train_method(output, m, opts, log=typer.echo)
     except HeadforgeError as exc:
         _fail(exc)
+    finally:
+        distributed.shutdown()
 
 
 @app.command("sample")

@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from headforge import distributed
 from headforge.errors import HeadforgeError
 
 SQRT2 = math.sqrt(2.0)
@@ -266,6 +267,12 @@ class Discriminator(nn.Module):
 
 
 # ---------------------------------------------------------------- losses and one training step
+def _mine(rows: torch.Tensor) -> torch.Tensor:
+    """This rank's strided share of a global batch (B, ...) -> (B / world, ...): items rank,
+    rank + world, ... (the whole batch on one process)."""
+    return rows[distributed.owned(len(rows))] if distributed.active() else rows
+
+
 class StyleGAN2Trainer:
     """Non-saturating logistic loss, lazy R1 on reals, lazy path-length regularisation, EMA of G."""
 
@@ -297,45 +304,63 @@ class StyleGAN2Trainer:
         self.pl_mean = state["pl_mean"].reshape(())
 
     def train_step(self, real: torch.Tensor) -> dict[str, float]:
+        """One D and one G step on the global batch ``real`` (B, C, R, R).
+
+        Under torch.distributed (:mod:`headforge.distributed`) every rank gets the same ``real``
+        and draws the same latents (the same seeded global RNG); each works on its strided share
+        (items rank, rank + world, ...: a minibatch-std group of the single process then lies on
+        one rank whenever the share holds whole groups) and the gradients are averaged before
+        each optimiser step, so every term, a mean over items, has the single-process gradient.
+        The mapping network runs on the whole batch on every rank (cheap; ``w_avg`` stays the
+        single process's); the path-length mean is averaged over the ranks."""
         cfg, G, D = self.cfg, self.G, self.D
         B = real.shape[0]
-        logs = {}
+        world = distributed.world_size()
+        if B % world:
+            raise HeadforgeError(f"batch {B} cannot be split over {world} processes: --set batch=N with N a multiple of {world}")
+        terms = {}
         # --- D: logistic loss (+ lazy R1)
         D.requires_grad_(True)
         G.requires_grad_(False)
         with torch.no_grad():
-            fake = G.synthesis(G.ws(torch.randn(B, cfg.z_dim), mixing=cfg.style_mixing))
+            fake = G.synthesis(_mine(G.ws(torch.randn(B, cfg.z_dim), mixing=cfg.style_mixing)))
+        real = _mine(real)
         loss_d = F.softplus(D(fake)).mean() + F.softplus(-D(real)).mean()
         if self.step % cfg.r1_interval == 0:
             r = real.detach().requires_grad_(True)
             (grad,) = torch.autograd.grad(D(r).sum(), r, create_graph=True)
             r1 = grad.square().sum([1, 2, 3]).mean()
             loss_d = loss_d + r1 * (cfg.r1_gamma / 2) * cfg.r1_interval
-            logs["r1"] = float(r1.detach())
+            terms["r1"] = r1.detach()
         self.opt_d.zero_grad(set_to_none=True)
         loss_d.backward()
+        distributed.average_gradients(D.parameters())
         self.opt_d.step()
-        logs["loss_d"] = float(loss_d.detach())
+        terms["loss_d"] = loss_d.detach()
         # --- G: non-saturating loss (+ lazy path-length)
         D.requires_grad_(False)
         G.requires_grad_(True)
         ws = G.ws(torch.randn(B, cfg.z_dim), mixing=cfg.style_mixing, update_avg=True)
-        loss_g = F.softplus(-D(G.synthesis(ws))).mean()
+        loss_g = F.softplus(-D(G.synthesis(_mine(ws)))).mean()
         if cfg.pl_weight > 0 and self.step % cfg.pl_interval == 0:
-            pb = max(1, B // 2)
-            ws_pl = G.ws(torch.randn(pb, cfg.z_dim))
+            pb = world * max(1, B // world // 2)  # half of each share (one process: max(1, B // 2))
+            ws_pl = G.ws(_mine(torch.randn(pb, cfg.z_dim)))
             img = G.synthesis(ws_pl)
-            noise = torch.randn_like(img) / math.sqrt(img.shape[2] * img.shape[3])
+            R = cfg.resolution
+            noise = _mine(torch.randn(pb, img.shape[1], R, R)) / math.sqrt(R * R)
             (gw,) = torch.autograd.grad((img * noise).sum(), ws_pl, create_graph=True)
             lengths = gw.square().sum(2).mean(1).sqrt()
-            self.pl_mean = self.pl_mean.lerp(lengths.mean().detach(), cfg.pl_decay)
+            mean_length = distributed.mean_terms({"l": lengths.mean().detach()})["l"]
+            self.pl_mean = self.pl_mean.lerp(mean_length, cfg.pl_decay)
             pl = (lengths - self.pl_mean).square().mean()
             loss_g = loss_g + pl * cfg.pl_weight * cfg.pl_interval
-            logs["pl"] = float(pl.detach())
+            terms["pl"] = pl.detach()
         self.opt_g.zero_grad(set_to_none=True)
         loss_g.backward()
+        distributed.average_gradients(G.parameters())
         self.opt_g.step()
-        logs["loss_g"] = float(loss_g.detach())
+        terms["loss_g"] = loss_g.detach()
+        logs = {k: float(v) for k, v in distributed.mean_terms(terms).items()}
         # --- EMA of G
         self.step += 1
         self.images += B

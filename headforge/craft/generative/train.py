@@ -13,6 +13,11 @@
 Methods: ``stylegan2``, ``vae``, ``vqvae``, ``pca`` (and the bare head model, which has
 nothing to train). Everything is written to a temp name and renamed; a killed run resumes from
 its last checkpoint when the same command is run again.
+
+Over processes (``torchrun``, :mod:`headforge.distributed`, gloo: training runs on the CPU):
+every rank draws the same global batches (the same seeded generators), trains on its share
+with the gradients averaged before each optimiser step (StyleGAN2, the VAE); PCA is fitted
+identically on every rank; the VQ-VAE trains on one process only. Rank 0 alone writes.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from headforge import distributed
 from headforge.craft.generative import data as D
 from headforge.errors import HeadforgeError
 
@@ -279,6 +285,10 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
     """Train (or resume) one method in a prepared run folder; returns its record in run.json."""
     run = Path(run)
     meta = read_run(run)
+    main = distributed.is_main()
+    if method == "vqvae" and distributed.active():
+        raise HeadforgeError("vqvae trains on one process only (its codebook's running averages are per process): "
+                             "run it without torchrun")
     cfg = make_config(method, options.preset, options.settings)
     if options.steps is not None:
         if options.steps < 1:
@@ -300,20 +310,28 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
         ck = load_checkpoint(folder, method, trainer, cfg.resolution)
         seconds = float(ck.get("seconds", 0.0))
         if ck.get("done") and trainer.step >= cfg.steps:
-            log(f"{method}: already trained ({trainer.step} steps)")
+            if main:
+                log(f"{method}: already trained ({trainer.step} steps)")
             return meta["methods"].get(method, {})
-        log(f"{method}: resuming at step {trainer.step}")
-    folder.mkdir(parents=True, exist_ok=True)
+        if main:
+            log(f"{method}: resuming at step {trainer.step}")
+    distributed.barrier()  # every rank has read the checkpoint before rank 0 writes the next
+    if main:
+        folder.mkdir(parents=True, exist_ok=True)
     fixed_z = torch.Generator().manual_seed(1234)
     t0 = time.time()
     logs = {}
     if method == "pca":
         trainer.fit(maps)
     else:
+        import contextlib
+        import io
+
         from rich.progress import Progress
 
-        rng = torch.Generator().manual_seed(options.seed * 7919 + trainer.step)
-        with Progress(transient=True) as progress, open(folder / "log.jsonl", "a") as logf:
+        rng = torch.Generator().manual_seed(options.seed * 7919 + trainer.step)  # the same batches on every rank
+        with (Progress(transient=True, disable=not main) as progress,
+              open(folder / "log.jsonl", "a") if main else contextlib.nullcontext(io.StringIO()) as logf):
             task = progress.add_task(f"{method}", total=cfg.steps, completed=trainer.step)
             while trainer.step < cfg.steps:
                 idx = torch.randint(len(maps), (cfg.batch,), generator=rng)
@@ -323,6 +341,8 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
                 if trainer.step % 25 == 0:
                     logf.write(json.dumps({"step": trainer.step, **logs}) + "\n")
                 last = trainer.step >= cfg.steps
+                if not main:  # pictures and checkpoints: rank 0 (the ranks hold the same weights)
+                    continue
                 if trainer.step % cfg.sample_every == 0 or last:
                     if method == "vqvae" and not last:
                         with torch.no_grad():
@@ -339,16 +359,19 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
         if method == "vqvae":
             log(f"vqvae: PixelCNN prior, {cfg.prior_epochs} epochs over the training codes")
             logs.update(trainer.fit_prior(maps))
-    if method in ("pca", "vqvae"):
-        _write_png(folder / "samples.png", sample_grid(sample_latents(method, trainer, 16, 1.0, fixed_z.manual_seed(1234))))
     seconds += time.time() - t0
-    save_checkpoint(folder, method, trainer, cfg.resolution, seconds, True)
-    meta = read_run(run)
-    meta["methods"][method] = {"config": asdict(cfg), "preset": options.preset, "steps": trainer.step,
-                               "train_minutes": seconds / 60, "last_losses": logs}
-    write_json(run / "run.json", meta)
-    log(f"{method}: {trainer.step} steps in {seconds / 60:.1f} min; samples in {folder / 'samples.png'}")
-    return meta["methods"][method]
+    record = {"config": asdict(cfg), "preset": options.preset, "steps": trainer.step,
+              "train_minutes": seconds / 60, "last_losses": logs}
+    if main:
+        if method in ("pca", "vqvae"):
+            _write_png(folder / "samples.png", sample_grid(sample_latents(method, trainer, 16, 1.0, fixed_z.manual_seed(1234))))
+        save_checkpoint(folder, method, trainer, cfg.resolution, seconds, True)
+        meta = read_run(run)
+        meta["methods"][method] = record
+        write_json(run / "run.json", meta)
+        log(f"{method}: {trainer.step} steps in {seconds / 60:.1f} min; samples in {folder / 'samples.png'}")
+    distributed.barrier()  # run.json holds this method before any rank starts the next
+    return record
 
 
 # ---------------------------------------------------------------- sampling

@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from headforge import distributed
+
 
 @dataclass
 class VAEConfig:
@@ -126,16 +128,22 @@ class VAETrainer:
         return {"opt": self.opt}
 
     def train_step(self, real: torch.Tensor) -> dict[str, float]:
+        """One step on the global batch ``real`` (B, C, R, R). Under torch.distributed each rank
+        takes its share (:func:`headforge.distributed.shard`) and the gradients are averaged;
+        batch norm's statistics are then the share's, not the batch's."""
         self.model.train()
+        real = distributed.shard(real)
         rec, mu, logvar = self.model(real)
         l_rec = (rec - real).square().mean()
         kl = (-0.5 * (1 + logvar - mu.square() - logvar.exp())).mean()  # per latent dimension
         loss = l_rec + self.cfg.kl_weight * kl
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
+        distributed.average_gradients(self.model.parameters())
         self.opt.step()
         self.step += 1
-        return {"rec": float(l_rec.detach()), "kl": float(kl.detach())}
+        terms = distributed.mean_terms({"rec": l_rec.detach(), "kl": kl.detach()})
+        return {k: float(v) for k, v in terms.items()}
 
     @torch.no_grad()
     def sample(self, z: torch.Tensor, truncation: float = 1.0) -> torch.Tensor:
