@@ -196,3 +196,80 @@ def evaluate(run: Path = typer.Argument(..., help="run folder of headforge craft
         _fail(exc)
     typer.echo(E.table(result))
     typer.echo(f"written {path} and {path.with_suffix('.md')}")
+
+
+@app.command("fit")
+def fit(observation: Path = typer.Argument(..., help="a full scan (mesh file or generated scan folder), a depth map "
+                                                     "(16-bit PNG or .npy + camera JSON) or a point cloud (PLY, PCD)"),
+        model_run: Path = typer.Option(..., "--model", help="run folder of headforge craft train"),
+        output: Path = typer.Option(..., "-o", "--output", help="output folder (completed mesh, map, latent, picture)"),
+        method: str = typer.Option("stylegan2", "--method", help="stylegan2, pca, mean (the mean training map) or bare "
+                                                                 "(the head model alone)"),
+        preset: str = typer.Option("quick", help="quick (CPU) or paper"),
+        camera: Path | None = typer.Option(None, help="depth maps: camera JSON with fx, fy, cx, cy (default: <depth>.json "
+                                                     "or camera.json beside it)"),
+        depth_scale: float | None = typer.Option(None, help="depth maps: metres per unit (PNG default 0.001, NPY 1)"),
+        density: str = typer.Option("auto", help="auto, dense or sparse: the mask refinement threshold (0.83 / 2.5 mm)"),
+        up: str | None = typer.Option(None, help="the file's up axis (default: -y for a cloud, a sensor's camera frame; "
+                                                 "+y for a scan)"),
+        forward: str | None = typer.Option(None, help="the axis the face looks along (default: -z cloud, +z scan)"),
+        units: str | None = typer.Option(None, help="m, cm, mm or metres per unit (default: m cloud, guessed for a scan)"),
+        noise: bool = typer.Option(True, help="the optional noise step of the StyleGAN2 fit"),
+        seed: int = typer.Option(0, help="seed of the z initialisation"),
+        steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
+        gt: Path | None = typer.Option(None, "--gt", help="ground-truth scan folder (headforge craft scans) to score against")) -> None:
+    """Fit a trained HeadCraft model to a full scan or to one depth map / point cloud (App. B.1)."""
+    from headforge.craft.fit import FitOptions
+    from headforge.craft.fit import fit as run_fit
+    from headforge.craft.pipeline import torch_threads
+
+    try:
+        torch_threads()
+        opts = FitOptions(method=method, preset=preset, camera=str(camera) if camera else None, depth_scale=depth_scale,
+                          density=density, up=up, forward=forward, units=units, noise=noise, seed=seed,
+                          steps_scale=steps_scale)
+        run_fit(observation, model_run, output, opts, gt, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("transfer-hair")
+def transfer_hair(face_fit: Path = typer.Argument(..., help="craft fit (or craft register) folder giving the face and identity"),
+                  hair_fit: Path = typer.Argument(..., help="craft fit (or craft register) folder giving the hair (scalp island)"),
+                  output: Path = typer.Option(..., "-o", "--output", help="output folder")) -> None:
+    """A's face with B's hair: the scalp part of B's map on A's face part, seams blended (§4.3)."""
+    from headforge.craft.fit import transfer_hair as run_transfer
+
+    try:
+        run_transfer(face_fit, hair_fit, output, log=typer.echo)
+    except HeadforgeError as exc:
+        _fail(exc)
+
+
+@app.command("depth")
+def depth(scan: Path = typer.Argument(..., help="generated scan folder or mesh file (head axes, metres)"),
+          output: Path = typer.Option(..., "-o", "--output", help="depth PNG to write (its camera JSON goes beside it)"),
+          yaw: float = typer.Option(0.0, help="sensor yaw around the head, degrees (0: frontal)"),
+          pitch: float = typer.Option(0.0, help="sensor pitch, degrees"),
+          size: int = typer.Option(512, help="depth map size in pixels"),
+          distance: float = typer.Option(0.6, help="sensor distance from the head, metres")) -> None:
+    """Render a depth map of a scan as a consumer depth sensor would see it (16-bit PNG, 0.1 mm
+    units, + camera JSON with the scan-to-camera pose): the observations of the depth benchmark."""
+    import numpy as np
+
+    from headforge.craft import observe as O
+    from headforge.craft.pipeline import ItemOptions, load_any
+
+    try:
+        if not 32 <= size <= 4096:
+            raise HeadforgeError(f"--size must be within 32-4096, got {size}")
+        s, gt_ = load_any(scan, ItemOptions(units="m"))
+        target = (np.nanmean(s.landmarks, 0) if s.landmarks is not None else s.vertices.mean(0)) + np.array([0, -0.02, -0.04])
+        cam = O.depth_camera(target, yaw, pitch, size, distance)
+        d = O.render_depth(s.vertices, s.faces, cam)
+        if not (d > 0).any():
+            raise HeadforgeError(f"the sensor sees nothing of {scan.name} from yaw {yaw}, pitch {pitch}")
+        O.write_depth(output, d, cam)
+    except HeadforgeError as exc:
+        _fail(exc)
+    typer.echo(f"depth map {output} ({int((d > 0).sum())} pixels) and camera {output.with_suffix('.json')}")

@@ -281,9 +281,13 @@ def uniform_laplacian(x: torch.Tensor, i: torch.Tensor, j: torch.Tensor, degree:
 
 class Losses:
     """HeadCraft's L(D, V, F, V_gt | lambda) in paper units (A.1): pruned two-way Chamfer on
-    points, mean squared edge length, outer-L2 uniform Laplacian."""
+    points, mean squared edge length, outer-L2 uniform Laplacian.
 
-    def __init__(self, faces: torch.Tensor, V: int, scan_points: np.ndarray, config: RegisterConfig):
+    ``template_mask`` (V,) bool: the template -> scan direction counts only these vertices (the
+    partial registration of B.1, whose observation covers part of the head); None: all."""
+
+    def __init__(self, faces: torch.Tensor, V: int, scan_points: np.ndarray, config: RegisterConfig,
+                 template_mask: torch.Tensor | None = None):
         from scipy.spatial import cKDTree
 
         self.edges = _edges(faces, V)
@@ -292,6 +296,7 @@ class Losses:
         self.scan = torch.as_tensor(scan_points * PAPER_UNITS_PER_M)
         self.scan_tree = cKDTree(self.scan.numpy())
         self.config = config
+        self.template_mask = template_mask
         self._back = None
 
     def chamfer(self, x: torch.Tensor, step: int, prune: float) -> tuple[torch.Tensor, dict]:
@@ -305,6 +310,8 @@ class Losses:
         a = (x - self.scan[fwd_t]).norm(dim=-1)
         b = (self.scan - x[back_t]).norm(dim=-1)
         ka, kb = a.detach() <= prune, b.detach() <= prune
+        if self.template_mask is not None:
+            ka = ka & self.template_mask
         term = (a * ka).sum() / ka.sum().clamp(min=1) + (b * kb).sum() / kb.sum().clamp(min=1)
         return term, {"kept_template": float(ka.double().mean()), "kept_scan": float(kb.double().mean())}
 
