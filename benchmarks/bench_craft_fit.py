@@ -1,0 +1,275 @@
+"""HeadCraft depth completion benchmark (issue 43; the paper's §4.4 / Fig. 8 protocol on
+generated scans with exact ground truth).
+
+For every held-out generated scan (``headforge craft scans``; harder variants included):
+
+- three observations: a 512 px depth map from the front and one from 45 degrees (written as
+  16-bit PNG + camera JSON and read back, as a user's file would be), and a 1 %-subsampled cloud
+  of the frontal map (written as PLY in the sensor's frame and read back);
+- one partial registration per observation, shared by the four completions: StyleGAN2
+  (z -> Delta-w -> noise), PCA (MAP fit of the observed texels), the mean training map, and the
+  head model alone (a zero map), each on the head model fitted to the observation;
+- scores in the scan's frame against the whole scan (:func:`headforge.craft.fit.completion_scores`):
+  Chamfer and one-sided distances (mm) overall, on the part the depth map saw (GT samples
+  within 4 mm of the map's depth at their pixel), on the unseen part, and on the unseen back
+  and hair (unseen samples labelled scalp or hair);
+- with ``--full``: the full-scan fit (registration, then the whole map) beside the
+  registration itself (the generator's reconstruction gap);
+- a hair-transfer sheet between the first two scans' frontal completions.
+
+Writes ``OUT/<scan>/<observation>/`` (observation file, picture.png, scores.json),
+``OUT/results.json``, ``OUT/table.md``; prints one JSON line of figures at the end.
+
+    python benchmarks/bench_craft_fit.py --run RUN --scans HELD_SCANS -o OUT
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from headforge.craft import fit as F
+from headforge.craft import observe as O
+from headforge.craft.generative import invert as I
+from headforge.craft.partial import partial_map, register_partial
+from headforge.craft.scans import load_generated, render_mesh, write_png
+
+METHODS = ("stylegan2", "pca", "mean", "bare")
+REGIONS = ("all", "observed", "unseen", "unseen_back_hair")
+
+
+def observations(scan_dir: Path, scan, gt, out: Path, size: int, side_yaw: float, cloud_fraction: float):
+    """[(name, Observation, camera of the depth it came from, that depth)]"""
+    import trimesh
+
+    target = gt["landmarks"].mean(0) + np.array([0.0, -0.02, -0.04])
+    result = []
+    front = None
+    for name, yaw in (("front", 0.0), (f"yaw{side_yaw:g}", side_yaw)):
+        cam = O.depth_camera(target, yaw, size=size)
+        depth = O.render_depth(scan.vertices, scan.faces, cam)
+        (out / name).mkdir(parents=True, exist_ok=True)
+        O.write_depth(out / name / "depth.png", depth, cam)
+        obs = O.read_depth(out / name / "depth.png")
+        result.append((name, obs, cam, obs.depth))
+        if yaw == 0.0:
+            front = (obs, cam)
+    obs, cam = front
+    sub = O.subsample(obs, cloud_fraction)
+    name = f"cloud{100 * cloud_fraction:g}pct"
+    (out / name).mkdir(parents=True, exist_ok=True)
+    trimesh.PointCloud(sub.points @ sub.to_source.T).export(out / name / "cloud.ply")  # the sensor's frame
+    result.append((name, O.read_cloud(out / name / "cloud.ply"), cam, obs.depth))
+    return result
+
+
+def to_scan_frame(obs, cam):
+    """canonical -> W (alignment) -> the sensor's camera frame -> the scan's frame."""
+    return lambda align, v: (align.to_scan(v) @ obs.to_source.T - cam.t) @ cam.R
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--run", required=True, help="run folder of headforge craft train (stylegan2 and pca trained)")
+    ap.add_argument("--scans", required=True, help="held-out generated scan folders (headforge craft scans)")
+    ap.add_argument("-o", "--output", required=True)
+    ap.add_argument("--limit", type=int, default=20, help="scans to use (the issue: 20)")
+    ap.add_argument("--size", type=int, default=512, help="depth map size")
+    ap.add_argument("--side-yaw", type=float, default=45.0)
+    ap.add_argument("--cloud", type=float, default=0.01, help="subsampled cloud fraction")
+    ap.add_argument("--preset", default="quick")
+    ap.add_argument("--steps-scale", type=float, default=1.0, help="multiply every optimisation step count")
+    ap.add_argument("--full", action="store_true", help="also fit the whole scans (registration + W+)")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    opts = F.FitOptions(preset=args.preset, steps_scale=args.steps_scale)
+    config = F.invert_config(opts)
+    models = {m: F.load_model(args.run, m) for m in METHODS}
+    base = models["bare"]
+    pcfg = F._partial_config(base, opts)
+    scans = sorted(p for p in Path(args.scans).iterdir() if (p / "scan.ply").is_file())[: args.limit]
+    if not scans:
+        raise SystemExit(f"error: no generated scans in {args.scans}")
+    records, fit_seconds, full_records = [], [], []
+    faces = base.template.faces.numpy()
+    for si, scan_dir in enumerate(scans):
+        scan, spec, gt = load_generated(scan_dir)
+        for name, obs, cam, depth in observations(scan_dir, scan, gt, out / scan_dir.name, args.size, args.side_yaw, args.cloud):
+            t0 = time.perf_counter()
+            try:
+                reg = register_partial(base.template, obs, pcfg)
+            except Exception as exc:  # a failed observation is recorded, never silently dropped
+                records.append({"scan": scan_dir.name, "observation": name, "error": str(exc)})
+                print(f"{scan_dir.name} {name}: FAILED {exc}", flush=True)
+                continue
+            pm, mask = partial_map(reg, base.duv, base.resolution)
+            seconds_reg = time.perf_counter() - t0
+            to_scan = to_scan_frame(obs, cam)
+            regions = {"observed": lambda p, lab, c=cam, d=depth: O_visible(p, c, d),
+                       "unseen": lambda p, lab, c=cam, d=depth: ~O_visible(p, c, d),
+                       "unseen_back_hair": lambda p, lab, c=cam, d=depth: ~O_visible(p, c, d) & np.isin(lab, (2, 3))}
+            rec = {"scan": scan_dir.name, "observation": name, "hair_style": spec["hair_style"], "variant": spec["variant"],
+                   "expression": bool(spec["expression"]), "points": len(obs.points), "density": reg.density,
+                   "observed_texels": float(mask.mean()), "face_coverage": reg.fit.face_coverage,
+                   "seconds_registration": seconds_reg, "methods": {}}
+            meshes = {}
+            for m, model in models.items():
+                fr = F.fit_map(model, pm, mask, config, opts.noise, opts.seed)
+                v = F.mesh_of(model, fr.map_m, reg.fit.alignment.params, pcfg.register.smooth_iterations)
+                scores = F.completion_scores(to_scan(reg.fit.alignment, v), faces, scan.vertices, scan.faces, gt["labels"], regions)
+                rec["methods"][m] = {"scores": scores, "seconds_latent": fr.seconds}
+                meshes[m] = v
+                if m == "stylegan2" and name == "front":
+                    _write_fit_folder(out / scan_dir.name / name / "stylegan2_fit", model, fr, reg)
+            fit_seconds.append(seconds_reg + rec["methods"]["stylegan2"]["seconds_latent"])
+            _picture(out / scan_dir.name / name / "picture.png", reg, meshes, faces, scan, obs, cam, base)
+            (out / scan_dir.name / name / "scores.json").write_text(json.dumps(rec, indent=1))
+            records.append(rec)
+            line = "  ".join(f"{m} {rec['methods'][m]['scores']['unseen']['chamfer_mm']:.2f}/"
+                             f"{rec['methods'][m]['scores']['observed']['chamfer_mm']:.2f}" for m in METHODS)
+            print(f"[{si + 1}/{len(scans)}] {scan_dir.name} {name} ({spec['hair_style']}, {spec['variant']}): "
+                  f"unseen/observed Chamfer mm  {line}  ({fit_seconds[-1]:.0f} s)", flush=True)
+        if args.full:
+            full_records.append(_full_fit(scan_dir, models, opts, config, out))
+    hair_sheet = _hair_transfer(out, scans)
+    summary = _summary(records, full_records, fit_seconds)
+    summary["hair_transfer_sheet"] = str(hair_sheet) if hair_sheet else None
+    (out / "results.json").write_text(json.dumps({"records": records, "full": full_records, "summary": summary}, indent=1, default=float))
+    (out / "table.md").write_text(_table(records, full_records))
+    print(_table(records, full_records))
+    print(json.dumps(summary))
+
+
+def O_visible(points, cam, depth):
+    return F.visible_in_depth(points, cam, depth)
+
+
+def _write_fit_folder(folder: Path, model, fr, reg) -> None:
+    """map.png + params.json: what transfer-hair reads."""
+    from headforge.craft import uvmap
+
+    folder.mkdir(parents=True, exist_ok=True)
+    uvmap.write_map(folder / "map.png", fr.map_m)
+    (folder / "params.json").write_text(json.dumps({"head_model": model.meta["head_model"], "levels": model.levels,
+                                                    "params": {k: v.tolist() for k, v in reg.fit.alignment.params.items()}}))
+
+
+def _picture(path: Path, reg, meshes: dict, faces, scan, obs, cam, base) -> None:
+    S = 192
+    target = meshes["bare"][base.template.regions["face"]].mean(0) + np.array([0.0, -0.02, -0.06])
+    gt_canon = reg.fit.alignment.to_canonical(((scan.vertices @ cam.R.T + cam.t) @ obs.to_source))
+    grey = lambda n: np.tile([0.75, 0.75, 0.78], (n, 1))  # noqa: E731
+    rows = []
+    for yaw in (20.0, 160.0):
+        row = [F.point_render(reg.points_canonical, S, yaw, target)]
+        row += [render_mesh(meshes[m], faces, grey(len(meshes[m])), S, yaw, target) for m in METHODS]
+        row.append(render_mesh(gt_canon, scan.faces, grey(len(gt_canon)), S, yaw, target))
+        rows.append(row)
+    write_png(path, F.picture(rows, ["observation", *METHODS, "ground truth"]))
+
+
+def _full_fit(scan_dir: Path, models: dict, opts, config, out: Path) -> dict:
+    """Registration, then the whole map: fitted mesh -> scan beside registration -> scan."""
+    from headforge.craft import register as reg_mod
+    from headforge.craft import uvmap
+    from headforge.craft.pipeline import ItemOptions, config_for, load_any
+
+    base = models["bare"]
+    item = ItemOptions(preset=opts.preset, map_size=base.resolution, steps_scale=opts.steps_scale)
+    rcfg = config_for(item)
+    rcfg.levels = base.levels
+    scan, gt = load_any(scan_dir, item)
+    reg = reg_mod.register(base.template, scan, rcfg)
+    raw, mask = uvmap.bake(reg.displacement, base.duv, base.resolution)
+    target_m = uvmap.postprocess_seams(raw, mask, base.duv, blend=0)
+    faces = base.template.faces.numpy()
+    regions = {"face": lambda p, lab: lab == 1, "hair_scalp": lambda p, lab: np.isin(lab, (2, 3))}
+    params = reg.alignment.params
+    rec = {"scan": scan_dir.name, "hair_style": gt["spec"]["hair_style"], "variant": gt["spec"]["variant"]}
+    v = F.mesh_of(base, target_m, params, rcfg.smooth_iterations)
+    rec["registration"] = F.completion_scores(v, faces, reg.scan_canonical, scan.faces, gt["labels"], regions)
+    for m in ("stylegan2", "pca"):
+        fr = F.fit_map(models[m], target_m, None, config, opts.noise, opts.seed)
+        v = F.mesh_of(models[m], fr.map_m, params, rcfg.smooth_iterations)
+        rec[m] = F.completion_scores(v, faces, reg.scan_canonical, scan.faces, gt["labels"], regions)
+        rec[m]["seconds"] = fr.seconds
+    print(f"full {scan_dir.name}: Chamfer mm registration {rec['registration']['all']['chamfer_mm']:.2f}, "
+          f"stylegan2 {rec['stylegan2']['all']['chamfer_mm']:.2f}, pca {rec['pca']['all']['chamfer_mm']:.2f}", flush=True)
+    return rec
+
+
+def _hair_transfer(out: Path, scans: list[Path]) -> Path | None:
+    fits = [out / s.name / "front" / "stylegan2_fit" for s in scans]
+    fits = [f for f in fits if (f / "map.png").is_file()]
+    if len(fits) < 2:
+        return None
+    sheets = []
+    for a, b in ((fits[0], fits[1]), (fits[1], fits[0])):
+        dest = out / f"hair_{a.parent.parent.name}_with_{b.parent.parent.name}"
+        F.transfer_hair(a, b, dest, log=lambda m: None)
+        sheets.append(dest / "sheet.png")
+    return sheets[0]
+
+
+def _mean(records, method, region, key="chamfer_mm"):
+    vals = [r["methods"][method]["scores"][region][key] for r in records if "methods" in r]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def _summary(records, full_records, fit_seconds) -> dict:
+    ok = [r for r in records if "methods" in r]
+    s = {"n_scans": len({r["scan"] for r in records}), "n_observations": len(ok), "failed": len(records) - len(ok),
+         "completion_chamfer_mm": _mean(ok, "stylegan2", "all"),
+         "completion_unseen_mm": _mean(ok, "stylegan2", "unseen"),
+         "completion_observed_mm": _mean(ok, "stylegan2", "observed"),
+         "completion_unseen_back_hair_mm": _mean(ok, "stylegan2", "unseen_back_hair")}
+    for m, key in (("mean", "mean_map"), ("pca", "pca"), ("bare", "bare_head")):
+        s[f"{key}_unseen_mm"] = _mean(ok, m, "unseen")
+        s[f"{key}_observed_mm"] = _mean(ok, m, "observed")
+        s[f"{key}_chamfer_mm"] = _mean(ok, m, "all")
+    base_unseen = min(s["mean_map_unseen_mm"], s["pca_unseen_mm"], s["bare_head_unseen_mm"])
+    base_obs = min(s["mean_map_observed_mm"], s["pca_observed_mm"], s["bare_head_observed_mm"])
+    s["target_unseen_beats_all"] = bool(s["completion_unseen_mm"] < base_unseen)
+    s["target_observed_within_10pct"] = bool(s["completion_observed_mm"] <= 1.1 * base_obs)
+    s["fit_seconds"] = float(statistics.median(fit_seconds)) if fit_seconds else float("nan")
+    if full_records:
+        s["full_registration_chamfer_mm"] = float(np.mean([r["registration"]["all"]["chamfer_mm"] for r in full_records]))
+        s["full_stylegan2_chamfer_mm"] = float(np.mean([r["stylegan2"]["all"]["chamfer_mm"] for r in full_records]))
+        s["full_pca_chamfer_mm"] = float(np.mean([r["pca"]["all"]["chamfer_mm"] for r in full_records]))
+    return s
+
+
+def _table(records, full_records) -> str:
+    ok = [r for r in records if "methods" in r]
+    lines = ["| completion (mean over observations), mm | " + " | ".join(METHODS) + " |",
+             "| --- |" + " --- |" * len(METHODS)]
+    for region in REGIONS:
+        for key, label in (("chamfer_mm", "Chamfer"), ("gt_to_pred_mm", "scan -> completion")):
+            lines.append(f"| {region}: {label} | " + " | ".join(f"{_mean(ok, m, region, key):.2f}" for m in METHODS) + " |")
+    kinds = sorted({r["observation"] for r in ok})
+    lines.append("")
+    lines.append("| unseen Chamfer by observation, mm | " + " | ".join(METHODS) + " |")
+    lines.append("| --- |" + " --- |" * len(METHODS))
+    for k in kinds:
+        sub = [r for r in ok if r["observation"] == k]
+        lines.append(f"| {k} ({len(sub)}) | " + " | ".join(f"{_mean(sub, m, 'unseen'):.2f}" for m in METHODS) + " |")
+    if full_records:
+        lines += ["", "| full-scan fit, Chamfer mm | registration | stylegan2 | pca |", "| --- | --- | --- | --- |"]
+        for r in full_records:
+            lines.append(f"| {r['scan']} ({r['hair_style']}, {r['variant']}) | {r['registration']['all']['chamfer_mm']:.2f} | "
+                         f"{r['stylegan2']['all']['chamfer_mm']:.2f} | {r['pca']['all']['chamfer_mm']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
