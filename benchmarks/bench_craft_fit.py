@@ -86,6 +86,7 @@ def main() -> None:
     ap.add_argument("--preset", default="quick")
     ap.add_argument("--steps-scale", type=float, default=1.0, help="multiply every optimisation step count")
     ap.add_argument("--full", action="store_true", help="also fit the whole scans (registration + W+)")
+    ap.add_argument("--no-partial", action="store_true", help="only the full-scan fits (with --full)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -103,7 +104,7 @@ def main() -> None:
     faces = base.template.faces.numpy()
     for si, scan_dir in enumerate(scans):
         scan, spec, gt = load_generated(scan_dir)
-        for name, obs, cam, depth in observations(scan_dir, scan, gt, out / scan_dir.name, args.size, args.side_yaw, args.cloud):
+        for name, obs, cam, depth in ([] if args.no_partial else observations(scan_dir, scan, gt, out / scan_dir.name, args.size, args.side_yaw, args.cloud)):
             t0 = time.perf_counter()
             try:
                 reg = register_partial(base.template, obs, pcfg)
@@ -114,9 +115,9 @@ def main() -> None:
             pm, mask = partial_map(reg, base.duv, base.resolution)
             seconds_reg = time.perf_counter() - t0
             to_scan = to_scan_frame(obs, cam)
-            regions = {"observed": lambda p, lab, c=cam, d=depth: O_visible(p, c, d),
-                       "unseen": lambda p, lab, c=cam, d=depth: ~O_visible(p, c, d),
-                       "unseen_back_hair": lambda p, lab, c=cam, d=depth: ~O_visible(p, c, d) & np.isin(lab, (2, 3))}
+            regions = {"observed": lambda p, lab, c=cam, d=depth: visible(p, c, d),
+                       "unseen": lambda p, lab, c=cam, d=depth: ~visible(p, c, d),
+                       "unseen_back_hair": lambda p, lab, c=cam, d=depth: ~visible(p, c, d) & np.isin(lab, (2, 3))}
             rec = {"scan": scan_dir.name, "observation": name, "hair_style": spec["hair_style"], "variant": spec["variant"],
                    "expression": bool(spec["expression"]), "points": len(obs.points), "density": reg.density,
                    "observed_texels": float(mask.mean()), "face_coverage": reg.fit.face_coverage,
@@ -149,7 +150,7 @@ def main() -> None:
     print(json.dumps(summary))
 
 
-def O_visible(points, cam, depth):
+def visible(points, cam, depth):
     return F.visible_in_depth(points, cam, depth)
 
 

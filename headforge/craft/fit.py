@@ -393,9 +393,7 @@ def _fit_partial(path: Path, model: Model, output: Path, options: FitOptions, co
     if obs.depth is not None:
         import cv2
 
-        prev = cv2.resize(depth_preview(obs.depth), (S, S), interpolation=cv2.INTER_AREA) / 255.0
-        cols[0][0] = np.minimum(cols[0][0], 1.0)
-        cols[1][0] = prev  # the depth map itself under the point view
+        cols[1][0] = cv2.resize(depth_preview(obs.depth), (S, S), interpolation=cv2.INTER_AREA) / 255.0  # the map itself
     pic = picture(cols, labels)
     params_json = {"head_model": model.meta["head_model"], "levels": model.levels, "method": model.method,
                    "params": {k: v.tolist() for k, v in params.items()},
