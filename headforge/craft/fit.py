@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -291,13 +292,10 @@ def _write_outputs(tmp: Path, model: Model, fitres: MapFit, canon_v: np.ndarray,
     write_png(tmp / "picture.png", pic)
 
 
-def _finish(tmp: Path, output: Path) -> None:
-    if output.exists():
-        shutil.rmtree(output)
-    tmp.rename(output)
-
-
-def _begin(output: Path) -> Path:
+@contextmanager
+def _atomic_folder(output: Path):
+    """Yield ``OUT.partial`` to write into; renamed to ``OUT`` when the block completes, removed
+    when it raises (nothing half-written is left that looks complete)."""
     output = Path(output)
     tmp = output.with_name(output.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -305,7 +303,14 @@ def _begin(output: Path) -> Path:
         tmp.mkdir(parents=True)
     except OSError as exc:
         raise HeadforgeError(f"cannot create {tmp}: {exc.strerror}") from None
-    return tmp
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if output.exists():
+        shutil.rmtree(output)
+    tmp.rename(output)
 
 
 def is_observation(path: Path) -> bool:
@@ -400,13 +405,8 @@ def _fit_partial(path: Path, model: Model, output: Path, options: FitOptions, co
                    "alignment": {"rotation": align.rotation.tolist(), "translation": align.translation.tolist(),
                                  "observation_to_file_axes": obs.to_source.tolist()},
                    "options": asdict(options), "invert": asdict(config)}
-    tmp = _begin(output)
-    try:
+    with _atomic_folder(output) as tmp:
         _write_outputs(tmp, model, fitres, canon_v, to_obs, {"partial_map": (pm, pmask)}, params_json, metrics, pic)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    _finish(tmp, output)
     log(f"completed head in {output} ({metrics['seconds']['total']:.0f} s; picture {output / 'picture.png'})")
     return metrics
 
@@ -511,13 +511,8 @@ def _fit_full(path: Path, model: Model, output: Path, options: FitOptions, confi
                    "params": {k: v.tolist() for k, v in params.items()},
                    "alignment": {"scale": a.scale, "rotation": a.rotation.tolist(), "translation": a.translation.tolist()},
                    "options": asdict(options), "invert": asdict(config)}
-    tmp = _begin(output)
-    try:
+    with _atomic_folder(output) as tmp:
         _write_outputs(tmp, model, fitres, canon_v, a.to_scan, {"registered_map": (target_m, mask)}, params_json, metrics, pic)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    _finish(tmp, output)
     log(f"fitted head in {output}: {fitted['all']['chamfer_mm']:.2f} mm Chamfer to the scan "
         f"(registration {registered['all']['chamfer_mm']:.2f} mm; {metrics['seconds']['total']:.0f} s)")
     return metrics
@@ -558,17 +553,12 @@ def transfer_hair(face_folder: str | Path, hair_folder: str | Path, output: str 
     pa, pb = neutral(meta_a), neutral(meta_b)
     verts = S.meshes(meta, [map_a, map_b, mixed], [pa, pb, pa])
     output = Path(output)
-    tmp = _begin(output)
-    try:
+    with _atomic_folder(output) as tmp:
         uvmap.write_map(tmp / "map.png", mixed)
         write_ply(tmp / "mesh.ply", verts[2], tpl.faces.numpy())
         write_json(tmp / "params.json", {"head_model": meta["head_model"], "levels": meta["levels"],
                                          "params": {k: v.tolist() for k, v in pa.items()},
                                          "face_from": str(Path(face_folder).resolve()), "hair_from": str(Path(hair_folder).resolve())})
         write_png(tmp / "sheet.png", S.sheet(verts, tpl.faces.numpy(), 192, ["A (face)", "B (hair)", "A with B's hair"]))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    _finish(tmp, output)
     log(f"A's face with B's hair in {output} (sheet {output / 'sheet.png'})")
     return output
