@@ -202,6 +202,21 @@ def _loop(params, steps: int, lr: float, loss_fn, history: list, progress=None, 
             progress(f"{label} {step + 1}/{steps}  loss {float(loss.detach()):.4f}")
 
 
+def _noise_step(G, ws: torch.Tensor, loss_fn, reg: float, steps: int, lr: float, history: list, progress):
+    """B.1's noise step: ``loss_fn()`` (+ ``reg`` x the sum of the noise tensors' L2 norms) over
+    the scalp noise with ``ws`` fixed; returns (the final map, the noise tensors)."""
+    nz = _Noise(G)
+
+    def noise_loss():
+        nz.apply()
+        return loss_fn() + (reg * nz.norm() if reg else 0.0)
+
+    _loop(nz.delta, steps, lr, noise_loss, history, progress, "noise")
+    nz.apply()
+    with torch.no_grad():
+        return G.synthesis(ws), nz.state()
+
+
 def invert_full(trainer, target, config: InvertConfig, noise: bool = True, seed: int = 0, progress=None) -> Inversion:
     """B.1 "fitting the latent code to a full scan": W+ from the mean w, then the scalp noise."""
     start = time.perf_counter()
@@ -219,18 +234,8 @@ def invert_full(trainer, target, config: InvertConfig, noise: bool = True, seed:
 
     _loop([ws], config.full_steps, config.lr, loss_fn, hist["w"], progress, "W+")
     ws = ws.detach().requires_grad_(False)
-    nz = _Noise(G)
-
-    def noise_loss():
-        nz.apply()
-        return loss_fn()
-
-    if noise:
-        _loop(nz.delta, config.full_noise_steps, config.lr, noise_loss, hist["noise"], progress, "noise")
-    nz.apply()
-    with torch.no_grad():
-        out = G.synthesis(ws)
-    return Inversion(out, ws, None, nz.state(), hist, perc.name, time.perf_counter() - start)
+    out, state = _noise_step(G, ws, loss_fn, 0.0, config.full_noise_steps if noise else 0, config.lr, hist["noise"], progress)
+    return Inversion(out, ws, None, state, hist, perc.name, time.perf_counter() - start)
 
 
 def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: InvertConfig, noise: bool = True,
@@ -275,18 +280,9 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
 
     _loop([dw], config.dw_steps, config.lr, dw_loss, hist["dw"], progress, "delta-w")
     ws = (w_z + dw).detach()
-    nz = _Noise(G)
-
-    def noise_loss():
-        nz.apply()
-        return observed_terms(G.synthesis(ws)) + config.noise_reg * nz.norm()
-
-    if noise:
-        _loop(nz.delta, config.noise_steps, config.lr, noise_loss, hist["noise"], progress, "noise")
-    nz.apply()
-    with torch.no_grad():
-        out = G.synthesis(ws)
-    return Inversion(out, ws, z, nz.state(), hist, perc.name, time.perf_counter() - start)
+    out, state = _noise_step(G, ws, lambda: observed_terms(G.synthesis(ws)), config.noise_reg,
+                             config.noise_steps if noise else 0, config.lr, hist["noise"], progress)
+    return Inversion(out, ws, z, state, hist, perc.name, time.perf_counter() - start)
 
 
 # ---------------------------------------------------------------- PCA and the mean map
