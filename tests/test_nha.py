@@ -889,3 +889,33 @@ def test_the_normal_and_semantic_terms_vanish_on_their_own_ground_truth():
     assert semantic_gt_term(wrong, labels, area) == 0
     wrong[0, :4] = classes[0, -1:].expand(4, -1, -1)  # the top rows called skin instead of hair
     assert semantic_gt_term(wrong, labels, area) > 0
+
+
+def test_classes_voted_from_the_gt_labels_agree_with_them_better_than_the_template_regions(synth_bench, tiny_config):
+    """semantic_classes=labels: the template vertices take the class of the GT labels they are
+    seen on (the subject's hairline instead of the template's), so at the tracked pose the
+    semantic term against those labels drops; the mouth's inside stays in no class."""
+    from headforge.avatars.nha.method import classes_from_labels, semantic_gt_term
+
+    dataset = synth_bench[0] / "subject_00"
+    res = tiny_config.resolution
+    train = FrameData(dataset, "train", res, supervision="gt")
+    avatar, _ = build_avatar(dataset, tiny_config)
+    template = avatar.semantic_classes().clone()
+    batch = train.batch(torch.arange(len(train)))
+    cameras = _cameras(train.K, len(train), res)
+
+    def term():
+        with torch.no_grad():
+            r = avatar.render(avatar.frame_params(batch["index"]), cameras, classes=True, matte=False, texture=False)
+        return float(semantic_gt_term(r.classes, batch["gt_labels"], torch.ones_like(batch["gt_labels"], dtype=torch.bool)))
+
+    before = term()
+    table = classes_from_labels(avatar, train, tiny_config)
+    assert (table != template).any(1).sum() > 10
+    mouth = avatar.head.region("mouth_interior")
+    assert (table[mouth] == 0).all() and ((table.sum(1) == 1) | (table.sum(1) == 0)).all()
+    avatar.set_semantic_classes(table)
+    assert term() < 0.8 * before
+    with pytest.raises(HeadforgeError, match="semantic class table"):
+        avatar.set_semantic_classes(table[:10])

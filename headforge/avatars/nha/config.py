@@ -41,6 +41,7 @@ class NHAConfig(EngineConfig):
     w_contour: float = 1.0
     w_normal: float = 1.0  # NHA's E_normal on GT normal maps (--supervision gt); the paper gives no value
     w_classes: float = 5.0  # NHA's E_semantic on GT labels (--supervision gt): skin+neck, eyes, hair; as w_semantic
+    semantic_classes: str = "template"  # template (the head model's regions) | labels (voted from the GT labels, --supervision gt)
     w_semantic: float = 5.0  # face-oval region of the avatar vs the detected landmarks' face oval
     w_rgb: float = 20.0  # photometric L1 on the matted frame; 1 -> 20 took Table 1 from 15.86 to 14.67 deg (docs/nha_table1.md)
     w_ssim: float = 0.2
@@ -92,7 +93,8 @@ class NHAConfig(EngineConfig):
 
     CHOICES = {"laplacian_regions": ("headforge", "table3"), "laplacian_operator": ("uniform", "cotangent"),
                "laplacian_norm": ("squared", "l1"), "edge_mode": ("template", "mean"),
-               "mouth_condition": ("jaw3", "neck10")}
+               "mouth_condition": ("jaw3", "neck10"),
+               "semantic_classes": ("template", "labels")}
 
     def check(self) -> None:
         """One-line errors for settings out of their range (the string choices, the epochs)."""

@@ -31,6 +31,7 @@ from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 from headforge.avatars.registry import register
 from headforge.errors import HeadforgeError
 from headforge.metrics.protocol import matte_on_white
+from headforge.render import mesh
 from headforge.render.camera import Cameras, project_points
 
 ALIGN_CHECKPOINT_FRAMES = 200  # training frames aligned between two checkpoints
@@ -243,6 +244,51 @@ def semantic_gt_term(classes: torch.Tensor, gt_labels: torch.Tensor, area: torch
     return ((classes - target).abs().sum(-1) * scored).sum() / scored.sum().clamp(min=1)
 
 
+@torch.no_grad()
+def classes_from_labels(avatar, data, config: NHAConfig, frames: int = 32) -> torch.Tensor:
+    """(V, C) one-hot class of each template vertex in SEMANTIC_CLASSES, voted from the ground-truth
+    labels (``gt_labels``) of ``frames`` evenly spaced training frames of ``data`` at the avatar's
+    current frame parameters: every covered pixel's label votes for the three corners of the
+    triangle it sees, by barycentric weight. Vertices no labelled pixel sees keep the template's
+    class; the mouth's inside stays in no class. The subject's hairline is then the mesh's
+    (a fringe over the template's forehead, hair over its ears), so the semantic term aligns regions
+    the offsets can reach instead of asking the surface to slide across the head."""
+    from headforge.avatars.nha.model import SEMANTIC_CLASSES
+
+    table = avatar.semantic_classes().clone()
+    V, C = table.shape
+    votes = torch.zeros(V, C + 1)  # the last column: labels in no class (the mouth's inside)
+    faces = avatar.head.faces
+    lut = torch.full((256,), -1, dtype=torch.long)
+    for c, name in enumerate(SEMANTIC_CLASSES):
+        lut[list(GT_LABELS_OF_CLASS[name])] = c
+    lut[list(GT_UNSCORED_LABELS)] = C
+    rows = torch.linspace(0, len(data) - 1, min(frames, len(data))).long()
+    for chunk in rows.split(config.batch):
+        batch = data.batch(chunk)
+        if "gt_labels" not in batch:
+            raise HeadforgeError("semantic_classes=labels needs ground-truth labels (--supervision gt on a synth subject)")
+        verts, _, _ = avatar.pose(avatar.frame_params(batch["index"]))
+        cameras = Cameras.at_origin(data.K, len(chunk), config.resolution)
+        frags = mesh.rasterize(cameras, verts, faces)
+        bary = mesh.barycentrics(frags, cameras, verts, faces)
+        device = verts.device
+        hit = (frags.face_id >= 0) & batch["gt_known"][:, None, None].to(device)
+        label = lut.to(device)[batch["gt_labels"].to(device)[hit]]
+        keep = label >= 0
+        corners = faces[frags.face_id[hit]][keep].reshape(-1)  # (N * 3,)
+        weight = bary[hit][keep].reshape(-1)
+        votes.index_put_((corners.cpu(), label[keep].repeat_interleave(3).cpu()), weight.cpu().float(), accumulate=True)
+    seen = votes.sum(1) > 0.5
+    mouth = table.sum(1) == 0
+    winner = votes.argmax(1)
+    new = torch.nn.functional.one_hot(winner.clamp(max=C - 1), C).float()
+    new[winner == C] = 0.0
+    update = seen & ~mouth
+    table[update] = new[update]
+    return table
+
+
 def albedo_tv(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
     """Mean L1 difference (per channel) of ``albedo`` (B, H, W, 3) between horizontally and
     vertically neighbouring pixels that are both ``inside`` (B, H, W) bool. Shading baked into the
@@ -351,6 +397,8 @@ class NHAMethod(Method):
         """After the geometry stage: align every training frame on its own, checkpointing every
         ALIGN_CHECKPOINT_FRAMES frames ("aligned" in the run's state)."""
         config, train = ctx.config, ctx.train
+        if config.semantic_classes == "labels" and "gt_known" in train.per_frame and not getattr(self, "_classes_set", False):
+            self._set_subject_classes(ctx)
         if config.early_stop_frames:
             held_back(config, len(train))  # a one-line error for too short a training range
             self._train = train  # the training batches swap the held-back frames out (losses)
@@ -363,6 +411,27 @@ class NHAMethod(Method):
             ctx.state["aligned"] = int(chunk[-1]) + 1
             ctx.checkpoint()
             ctx.log(f"aligned {ctx.state['aligned']}/{len(train)} training frames")
+
+    def _set_subject_classes(self, ctx) -> None:
+        """The avatar's semantic classes voted from the training frames' GT labels
+        (:func:`classes_from_labels`) at the first iteration; kept in the run's state (one class
+        index per vertex, -1: none) so that a resumed run uses the same table."""
+        from headforge.avatars.nha.model import SEMANTIC_CLASSES
+
+        C = len(SEMANTIC_CLASSES)
+        if "semantic_classes" not in ctx.state:
+            table = classes_from_labels(ctx.avatar, ctx.train, ctx.config)
+            index = torch.where(table.sum(1) > 0, table.argmax(1), -1)
+            ctx.state["semantic_classes"] = index.tolist()
+            before = ctx.avatar.semantic_classes()
+            moved = int((table != before).any(1).sum())
+            ctx.log(f"semantic classes from the GT labels: {moved} of {len(index)} vertices change class "
+                    f"({', '.join(f'{n} {int((index == c).sum())}' for c, n in enumerate(SEMANTIC_CLASSES))})")
+        index = torch.tensor(ctx.state["semantic_classes"])
+        table = torch.zeros(len(index), C)
+        table[index >= 0] = torch.nn.functional.one_hot(index[index >= 0], C).float()
+        ctx.avatar.set_semantic_classes(table)
+        self._classes_set = True
 
     def after_iteration(self, ctx) -> bool:
         """Early stop (App. A.3, ``early_stop_frames`` > 0): every ``early_stop_every`` joint

@@ -382,7 +382,8 @@ class NeuralHeadAvatar(Avatar):
 
     def semantic_classes(self) -> torch.Tensor:
         """(V, C) one-hot of each template vertex's class in :data:`SEMANTIC_CLASSES` (all zero:
-        no class -- the mouth's inside, which NHA's semantic term leaves out)."""
+        no class -- the mouth's inside, which NHA's semantic term leaves out): the template's
+        regions, or the table :meth:`set_semantic_classes` gave."""
         if getattr(self, "_semantic_classes", None) is None:
             table = torch.zeros(self.head.num_vertices, len(SEMANTIC_CLASSES))
             table[:, SEMANTIC_CLASSES.index("skin")] = 1.0
@@ -394,6 +395,14 @@ class NeuralHeadAvatar(Avatar):
                         table[rows, SEMANTIC_CLASSES.index(name)] = 1.0
             self._semantic_classes = table
         return self._semantic_classes
+
+    def set_semantic_classes(self, table: torch.Tensor) -> None:
+        """Replace the template regions' classes by ``table`` (V, C), e.g. the subject's own
+        (:func:`headforge.avatars.nha.method.classes_from_labels`); not saved with the weights."""
+        if table.shape != (self.head.num_vertices, len(SEMANTIC_CLASSES)):
+            raise HeadforgeError(f"a semantic class table must be ({self.head.num_vertices}, {len(SEMANTIC_CLASSES)}), "
+                                 f"got {tuple(table.shape)}")
+        self._semantic_classes = table.detach().float().cpu()
 
     @torch.no_grad()
     def geometry(self, params: dict[str, torch.Tensor]) -> Geometry:
