@@ -74,6 +74,34 @@ def test_deformed_normals_are_the_inverse_transpose_of_the_deformation_jacobian(
     assert (n_r * expected).sum(-1).mean() < 1 - 1e-4
 
 
+def test_a_separate_albedo_network_colours_the_points_and_leaves_the_geometry_alone(rendered):
+    """albedo_width > 0: the albedo is the albedo network's at the points, the SDF and its
+    normals stay the canonical network's, and the RGB energy trains the albedo network."""
+    from headforge.avatars import registry
+    from headforge.avatars.run import RunAssets
+    from headforge.render.camera import Cameras
+
+    method = registry.get("pointavatar")
+    assets = RunAssets.from_dataset(rendered)
+    config = tiny_config(albedo_width=16, albedo_layers=2, albedo_frequencies=6)
+    torch.manual_seed(0)
+    avatar = method.build(assets, config)
+    torch.manual_seed(0)
+    plain = method.build(assets, tiny_config())
+    c = avatar.canonical(False)
+    assert torch.allclose(c.albedo, avatar.albedo_net(avatar.points.detach()))
+    c_plain = plain.canonical(False)
+    assert torch.equal(c.sdf, c_plain.sdf) and torch.equal(c.grad, c_plain.grad)  # same seed: same SDF network
+    assert not torch.allclose(c.albedo, c_plain.albedo)
+    from headforge.avatars.frames import FrameData
+    from headforge.metrics.protocol import TrackedHead
+
+    train = FrameData(rendered, "train", config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    terms = method.losses(avatar, train.batch(torch.arange(2)), train.K, config, "train")
+    terms["rgb"].backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.albedo_net.parameters())
+
+
 def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(rendered):
     avatar = deformed_avatar(rendered).float()
     q = avatar.points.detach().clone()

@@ -32,6 +32,11 @@ class PointAvatarConfig(EngineConfig):
     deformer_layers: int = 4
     shading_width: int = 64
     shading_layers: int = 2
+    # headforge's deviation (docs/pointavatar.md): albedo from a separate MLP with its own, finer
+    # positional encoding; 0: albedo from the canonical network, as the paper
+    albedo_width: int = 0
+    albedo_layers: int = 3
+    albedo_frequencies: int = 8
     # the method's switches (the paper's ablations)
     jacobian_normals: bool = True  # False: normals by the blended skinning rotation only (Fig. 6, column 3)
     canonical_offset: bool = True  # False: points learnt directly in the head model's canonical space (Fig. 9)

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from headforge.avatars.base import Avatar, AvatarRender, Geometry
-from headforge.avatars.pointavatar.networks import CanonicalNet, Deformer, ShadingNet
+from headforge.avatars.pointavatar.networks import AlbedoNet, CanonicalNet, Deformer, ShadingNet
 from headforge.errors import HeadforgeError
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FLIP, FRAME_KEYS, head_to_camera
@@ -104,6 +104,8 @@ class PointAvatarModel(Avatar):
                                           config.frequencies, config.init_radius)
         self.deformer = Deformer(config.deformer_width, config.deformer_layers, self.head.n_expr, self.n_pose, n_bones,
                                  offset=config.canonical_offset)
+        self.albedo_net = (AlbedoNet(config.albedo_width, config.albedo_layers, config.albedo_frequencies)
+                           if config.albedo_width > 0 else None)
         self.shading_net = ShadingNet(config.shading_width, config.shading_layers) if config.shading != "none" else None
         self.colour_net = ShadingNet(config.shading_width, config.shading_layers, in_dim=6) if config.shading == "none" else None
         gen = torch.Generator().manual_seed(config.seed)
@@ -161,6 +163,8 @@ class PointAvatarModel(Avatar):
         # the SDF sees the points' positions, not the reverse: the data term must not drag points
         # onto a smooth surface (authors' code); the gradient (normal) is differentiable
         sdf, grad, albedo = self.canonical_net.sdf_and_normal(q.detach(), create_graph=training)
+        if self.albedo_net is not None:  # the separate albedo network replaces the canonical one's
+            albedo = self.albedo_net(q.detach())
         if self.jacobian_normals:
             # forward-mode derivatives along q's three axes, stacked as 3N rows
             N = q.shape[0]

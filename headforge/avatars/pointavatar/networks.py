@@ -138,6 +138,28 @@ class Deformer(nn.Module):
         return G * self.BLEND_SCALE, g * self.BLEND_SCALE
 
 
+class AlbedoNet(nn.Module):
+    """A separate albedo MLP (headforge's deviation, docs/pointavatar.md): q (N, 3) -> albedo (N, 3)
+    in (0, 1), sigmoid(10 x) as the canonical network's albedo output. Its own positional encoding
+    can go finer than the SDF's (``frequencies`` octaves: the finest period 2 pi / 2^(frequencies - 1)
+    normalised units, 7 mm at 8) without making the SDF's normals noisy, and it needs no gradient
+    with respect to q, so it costs a plain forward and backward (no double backward)."""
+
+    def __init__(self, width: int, layers: int, frequencies: int, norm: bool = True):
+        super().__init__()
+        self.frequencies = frequencies
+        dims = [3 + 6 * frequencies] + [width] * layers + [3]
+        self.layers = nn.ModuleList(_linear(dims[i], dims[i + 1], norm) for i in range(len(dims) - 1))
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        x = positional_encoding(q, self.frequencies)
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < len(self.layers) - 1:
+                x = torch.relu(x)
+        return torch.sigmoid(10 * x)
+
+
 class ShadingNet(nn.Module):
     """MLP_s (Eq. 8): a unit normal n (..., 3) in the deformed (posed head) frame -> shading
     (..., 3) in (0, 1); the colour is albedo x shading x 2 (the authors' scale, so a mid shading
