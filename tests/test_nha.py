@@ -919,3 +919,26 @@ def test_classes_voted_from_the_gt_labels_agree_with_them_better_than_the_templa
     assert term() < 0.8 * before
     with pytest.raises(HeadforgeError, match="semantic class table"):
         avatar.set_semantic_classes(table[:10])
+
+
+def test_a_run_votes_its_semantic_classes_once_and_a_resumed_run_keeps_them(synth_bench, tiny_config, tmp_path,
+                                                                            interrupt_after):
+    """--supervision gt with semantic_classes=labels: the first iteration votes the table (logged,
+    kept in state.json); a resumed run takes it from there instead of voting again."""
+    from dataclasses import replace
+
+    from headforge.avatars.engine import fit
+
+    dataset = synth_bench[0] / "subject_00"
+    config = replace(tiny_config, supervision="gt", semantic_classes="labels")
+    run = tmp_path / "run"
+    logs = []
+    with pytest.raises(KeyboardInterrupt):
+        fit("nha", dataset, run, config, log=logs.append, progress=interrupt_after(3))
+    assert sum("semantic classes from the GT labels" in m for m in logs) == 1
+    saved = json.loads((run / "state.json").read_text())["semantic_classes"]
+    assert len(saved) == 4570 and {-1, 0, 1, 2} >= set(saved) and saved.count(2) > 250  # more hair than the crown
+    logs.clear()
+    fit("nha", dataset, run, config, log=logs.append)
+    assert not any("semantic classes from the GT labels" in m for m in logs)
+    assert json.loads((run / "state.json").read_text())["semantic_classes"] == saved
