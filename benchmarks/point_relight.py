@@ -10,9 +10,10 @@ second light, and the albedo alone), at the run's test-time-fitted parameters:
 
 PSNR over the protocol's head pixels (both images matted on white by the GT mask).
 
-    python benchmarks/point_relight.py RUN SUBJECT
+    python benchmarks/point_relight.py RUN SUBJECT [--picture relit.png]
 
-Prints one JSON line.
+Prints one JSON line. ``--picture``: the first three frames as rows of relit GT | relit avatar |
+un-relit avatar | GT albedo | scaled learned albedo (each matted on white by the GT mask).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("run", type=Path)
     parser.add_argument("subject", type=Path)
+    parser.add_argument("--picture", type=Path, default=None)
     args = parser.parse_args()
     from PIL import Image
 
@@ -57,6 +59,7 @@ def main() -> None:
         return float(10 * torch.log10(1 / mse.clamp(min=1e-10)))
 
     sums = {"relit": [], "unrelit": [], "albedo": []}
+    tiles = []
     with torch.no_grad():
         for row in rows:
             batch = val.batch(torch.tensor([row]))
@@ -74,6 +77,15 @@ def main() -> None:
             a, g = plain.albedo, albedo_gt
             scale = (a * g * inside[..., None]).sum((0, 1, 2)) / (a * a * inside[..., None]).sum((0, 1, 2)).clamp(min=1e-8)
             sums["albedo"].append(psnr((a * scale).clamp(0, 1), g, inside))
+            if len(tiles) < 3:
+                m = mask[..., None]
+                covered = (plain.coverage > 0.5)[..., None].float() * m
+                tiles.append(torch.cat([relit_gt, lit.rgb * m + 1 - m, plain.rgb * m + 1 - m, g,
+                                        (a * scale) * covered + 1 - covered], 2)[0].clamp(0, 1))
+    if args.picture is not None:
+        from headforge.render.io import write_png
+
+        write_png(args.picture, torch.cat(tiles, 0))
     out = {f"{k}_psnr_head": round(float(np.mean(v)), 3) for k, v in sums.items()}
     out |= {"frames": len(rows), "relit_beats_unrelit": out["relit_psnr_head"] > out["unrelit_psnr_head"]}
     print(json.dumps(out))
