@@ -942,3 +942,29 @@ def test_a_run_votes_its_semantic_classes_once_and_a_resumed_run_keeps_them(synt
     fit("nha", dataset, run, config, log=logs.append)
     assert not any("semantic classes from the GT labels" in m for m in logs)
     assert json.loads((run / "state.json").read_text())["semantic_classes"] == saved
+
+
+def test_held_out_detections_are_corrected_by_the_detector_bias_of_the_training_frames(synth_bench, tiny_config):
+    """--supervision gt trains on ground-truth landmarks and fits the held-out frames to
+    detections: the detector's mean offset from the ground truth, measured on the training frames
+    only, is taken off the held-out detections (their face ovals redrawn)."""
+    from headforge.avatars.frames import detector_bias
+
+    dataset = synth_bench[0] / "subject_00"
+    res = tiny_config.resolution
+    train = FrameData(dataset, "train", res, supervision="gt")
+    detected = FrameData(dataset, "train", res).landmarks
+    bias = train.detector_bias
+    ok = torch.isfinite(detected).all(-1)
+    assert bias.shape == (478, 2) and bias.abs().max() > 0.1
+    k = int(ok.sum(0).argmax())
+    assert torch.allclose(bias[k], (detected[ok[:, k], k] - train.landmarks[ok[:, k], k]).mean(0), atol=1e-5)
+    assert FrameData(dataset, "train", res).detector_bias is None  # nothing to measure without ground truth
+    val = FrameData(dataset, "val", res)
+    before = val.landmarks.clone()
+    val.correct_detections(bias)
+    assert torch.allclose(torch.nan_to_num(before - val.landmarks), bias.expand_as(before) * torch.isfinite(before), atol=1e-4)
+    with pytest.raises(HeadforgeError, match="landmark bias"):
+        val.correct_detections(bias[:10])
+    two = torch.tensor([[[0.0, 0.0], [float("nan"), float("nan")]], [[2.0, 4.0], [1.0, 1.0]]])
+    assert torch.allclose(detector_bias(two, torch.zeros_like(two)), torch.tensor([[1.0, 2.0], [1.0, 1.0]]))

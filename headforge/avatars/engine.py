@@ -232,6 +232,10 @@ def fit(method: str | Method, dataset: str | Path, run: str | Path, config, log=
     head = TrackedHead(assets.head_data(), assets.tracking["shape"])
     train = FrameData(dataset, "train", config.resolution, head, supervision=config.supervision).to(device)
     val_all = FrameData(dataset, "val", config.resolution, head).to(device)
+    if train.detector_bias is not None:
+        # trained on ground-truth landmarks, the held-out frames are fitted to detections: without
+        # the detector's bias measured on the training frames their poses drift from the trained ones
+        val_all.correct_detections(train.detector_bias)
     if main:
         run.mkdir(parents=True, exist_ok=True)
         if not resume:
@@ -426,7 +430,8 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
     """Camera-space surfaces of the avatar at the frames that carry ground truth in a synth
     dataset (the ``headforge eval`` geometry format): a mesh (``vertices``, ``faces``,
     ``face_vertices``, ``head_vertices``) or, for a point avatar, a point set (``points`` (T, N, 3)
-    metres, unit ``normals`` (T, N, 3), world ``radius`` (T, N) metres; the same N in every frame).
+    metres, unit ``normals`` (T, N, 3), world ``radius`` (T, N) metres; the same N in every frame;
+    ``face_points`` / ``head_points`` (N,) bool when the avatar tells its regions).
     Written to a temporary name and renamed."""
     from safetensors.numpy import load_file, save_file
 
@@ -444,6 +449,8 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
         radius = np.concatenate([as_np(p.radius.expand(p.vertices.shape[:2])) for p in parts]).astype(np.float32)
         arrays = {"frames": frames.astype(np.int64), "points": cat("vertices"), "normals": cat("normals"),
                   "radius": radius}
+        if g.face_vertices is not None and g.head_vertices is not None:  # the avatar's own regions per point
+            arrays |= {"face_points": as_np(g.face_vertices), "head_points": as_np(g.head_vertices)}
     else:
         arrays = {"frames": frames.astype(np.int64), "vertices": cat("vertices"),
                   "faces": as_np(g.faces).astype(np.int64), "face_vertices": as_np(g.face_vertices),

@@ -87,6 +87,16 @@ def load_ground_truth(root: Path, index: torch.Tensor, resolution: int) -> dict[
             "gt_labels": torch.from_numpy(labels), "gt_known": torch.from_numpy(known)}
 
 
+def detector_bias(detected: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """(L, 2) pixels: the mean of ``detected`` - ``truth`` (T, L, 2) over the frames where a
+    landmark was detected (0 where it never was): the detector's systematic offset from the
+    ground-truth points, e.g. MediaPipe's from open-head's embedded landmarks on a synth subject
+    (1.4-1.7 px median at 256 px, docs/nha_table1.md)."""
+    d = detected - truth
+    ok = torch.isfinite(d).all(-1, keepdim=True)
+    return (torch.nan_to_num(d) * ok).sum(0) / ok.sum(0).clamp(min=1)
+
+
 class FrameData:
     """The valid frames of one split (train or val) of a dataset, resized to ``resolution``:
     uint8 images and masks, landmarks, the landmark face oval, and the protocol's head and face
@@ -124,8 +134,10 @@ class FrameData:
         if supervision not in SUPERVISION:
             raise HeadforgeError(f"supervision must be one of {', '.join(SUPERVISION)}, got {supervision!r}")
         self.per_frame = FrameData.PER_FRAME
+        self.detector_bias = None
         if supervision == "gt" and split == "train":
             gt = load_ground_truth(root, self.index, resolution)
+            self.detector_bias = detector_bias(self.landmarks, gt["landmarks"])
             self.landmarks = gt.pop("landmarks")
             for key, value in gt.items():
                 setattr(self, key, value)
@@ -135,6 +147,16 @@ class FrameData:
         self.resolution = resolution
         tracked = {k: v[self.index] for k, v in from_tracking(ds.tracking).items()}
         self.regions, self.face_scored = head.regions(tracked, Cameras.at_origin(self.K, len(self), resolution))
+
+    def correct_detections(self, bias: torch.Tensor) -> None:
+        """Subtract a detector's per-landmark bias (L, 2) pixels at this resolution
+        (:func:`detector_bias`, measured on other frames) from the detected landmarks, and redraw
+        the face ovals from them."""
+        if bias.shape != self.landmarks.shape[1:]:
+            raise HeadforgeError(f"a landmark bias must be {tuple(self.landmarks.shape[1:])}, got {tuple(bias.shape)}")
+        self.landmarks = self.landmarks - bias.to(self.landmarks)
+        self.face_regions, self.face_known = face_oval_masks(self.landmarks.cpu(), self.resolution)
+        self.face_regions, self.face_known = self.face_regions.to(self.landmarks.device), self.face_known.to(self.landmarks.device)
 
     def __len__(self) -> int:
         return len(self.index)
