@@ -113,6 +113,36 @@ def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets)
     assert noisy["normal_error_head_deg"] > m["normal_error_head_deg"] + 5
 
 
+def test_a_point_set_with_its_own_regions_is_aligned_on_them(point_sets, tmp_path):
+    """A point set placed 6 cm too deep (a point avatar inherits its tracking's depth error) that
+    carries face_points / head_points is aligned by its own face points, back to ~the GT surface;
+    with the camera-space GT labels instead, its "face points" are whatever lies nearest the GT
+    face 6 cm away, and the alignment is off."""
+    from safetensors.numpy import load_file
+
+    from headforge.metrics.benchmark import evaluate_geometry, gt_point_labels, load_subject_gt, split_rows
+
+    subject, every = point_sets["subject"], point_sets["every"]
+    arrays = load_file(str(point_sets["clean"] / "geometry.safetensors"))
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", every)
+    _, _, _, label = gt_point_labels(arrays["points"][rows[0]], gt["vertices"][rows[0]], gt["faces"], gt["labels"])
+    shifted = arrays["points"] + np.array([0.0, 0.0, 0.06], np.float32)
+    _write_points(tmp_path / "gt_labels", arrays["frames"], shifted, arrays["normals"], arrays["radius"])
+    own = tmp_path / "own"
+    _write_points(own, arrays["frames"], shifted, arrays["normals"], arrays["radius"])
+    with_regions = load_file(str(own / "geometry.safetensors")) | {
+        "face_points": label == info["labels"]["face"], "head_points": np.isin(label, info["head_labels"])}
+    save_file(with_regions, str(own / "geometry.safetensors"))
+    m = evaluate_geometry(own, subject, every=every, samples=2000)["mean"]
+    assert m["hausdorff_full_camera_mm"] > 20  # the shift itself
+    assert m["hausdorff_face_mm"] < 1.0 and m["hausdorff_full_mm"] < 1.0 and m["normal_consistency"] > 0.97
+    assert m["face_points"] == int((label == info["labels"]["face"])[np.random.default_rng(0).permutation(
+        len(label))[:2000]].sum())
+    by_gt = evaluate_geometry(tmp_path / "gt_labels", subject, every=every, samples=2000)["mean"]
+    assert by_gt["face_points"] < m["face_points"] and by_gt["hausdorff_face_mm"] > m["hausdorff_face_mm"] + 1
+
+
 def test_point_and_mesh_predictions_pair_either_way(point_sets, open_head_data, tmp_path):
     """``--reference`` with a point set on one side and a mesh on the other (the tracked head
     model, as PointAvatar against a mesh avatar), both ways round; each one's coverage reported."""
@@ -208,6 +238,8 @@ def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_set
     ("zero normal", "zero length"),
     ("negative radius", "radius must be positive"),
     ("float frames", "integer frame indices"),
+    ("face_points (P + 1,)", "point masks"),
+    ("face_points without head_points", "lacks 'head_points'"),
 ])
 def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
     from headforge.metrics.benchmark import load_prediction
@@ -236,6 +268,10 @@ def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
         arrays["radius"][2, 3] = -1e-3
     elif damage == "float frames":
         arrays["frames"] = np.arange(T, dtype=np.float32)
+    elif damage == "face_points (P + 1,)":
+        arrays |= {"face_points": np.ones(P + 1, bool), "head_points": np.ones(P, bool)}
+    elif damage == "face_points without head_points":
+        arrays["face_points"] = np.ones(P, bool)
     save_file(arrays, str(tmp_path / "geometry.safetensors"))
     with pytest.raises(HeadforgeError) as err:
         load_prediction(tmp_path, np.arange(T))

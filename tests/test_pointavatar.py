@@ -102,6 +102,28 @@ def test_a_separate_albedo_network_colours_the_points_and_leaves_the_geometry_al
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.albedo_net.parameters())
 
 
+def test_a_head_initialised_cloud_starts_on_the_canonical_head_model_surface(rendered):
+    """init_cloud=head: every initial point lies on a triangle of the canonical head model
+    (x_o = x_c, the offset starting at zero), spread over the surface rather than clumped."""
+    from headforge.avatars import registry
+    from headforge.avatars.pointavatar.model import SCALE
+    from headforge.avatars.run import RunAssets
+    import trimesh
+
+    avatar = registry.get("pointavatar").build(RunAssets.from_dataset(rendered), tiny_config(init_cloud="head"))
+    with torch.no_grad():
+        c = avatar.canonical(False)
+        x_o = c.q * SCALE + avatar.centre + c.O
+    assert float(c.O.abs().max()) == 0.0
+    mesh = trimesh.Trimesh(avatar.canonical_vertices.numpy(), avatar.head.faces.numpy(), process=False)
+    _, distance, _ = trimesh.proximity.closest_point(mesh, x_o.double().numpy())
+    assert distance.max() < 1e-6
+    nearest = avatar.nearest_canonical_vertices(x_o)
+    assert len(torch.unique(nearest)) > 0.5 * len(x_o)  # 300 points fall near many different vertices
+    with pytest.raises(HeadforgeError, match="init_cloud"):
+        tiny_config(init_cloud="cube").validate()
+
+
 def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(rendered):
     avatar = deformed_avatar(rendered).float()
     q = avatar.points.detach().clone()

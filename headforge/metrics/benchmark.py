@@ -35,10 +35,15 @@ for points as follows:
   ``fx * radius / depth`` pixels carrying their normals; the composited normals renormalised; a
   pixel is covered where the splat's accumulated alpha exceeds 0.5. The normal errors,
   ``head_coverage`` and the paired figures then follow the mesh definitions on those pixels.
-- regions: a point set has no face/head vertex masks, so each scored point takes the GT label of
-  its nearest GT surface point (the label of the closest GT triangle's nearest vertex, found in
-  camera space): *head points* have a full-head label (neck and body excluded), *face points*
-  the face label. All points count, visible or not, as all of a mesh's head region does.
+- regions: a point set that carries its own per-point masks ``face_points`` / ``head_points``
+  (P,) (PointAvatar's export: the region of each point's nearest canonical head-model vertex)
+  is scored on them, as a mesh on its template's regions; otherwise each scored point takes the
+  GT label of its nearest GT surface point (the label of the closest GT triangle's nearest
+  vertex, found in camera space): *head points* have a full-head label (neck and body excluded),
+  *face points* the face label. The GT labels only work for a prediction placed in camera space
+  within millimetres of the GT: a point avatar inherits its tracking's depth error (6-8 cm on
+  the synthetic bob, docs/pointavatar.md), and then its face points are mostly not nearest the
+  GT face. All points count, visible or not, as all of a mesh's head region does.
 - one-sided distance: mean (NHA's alignment error) and max over the head / face points of their
   exact distance to the GT surface, on at most ``samples`` points (a fixed random subset, the same
   in every frame), a mean over points rather than over area; ``*_camera_mm`` in camera space,
@@ -74,8 +79,8 @@ class PredictedGeometry:
     frames: np.ndarray  # (N,) frame indices
     vertices: np.ndarray  # (N, V, 3) camera space, metres: mesh vertices or points
     faces: np.ndarray | None  # (F, 3); None for a point set
-    face_vertices: np.ndarray | None  # (V,) bool; None for a point set (regions from the GT labels)
-    head_vertices: np.ndarray | None  # (V,) bool: the full head (neck excluded); None for a point set
+    face_vertices: np.ndarray | None  # (V,) bool; for a point set its face_points, or None (regions from the GT labels)
+    head_vertices: np.ndarray | None  # (V,) bool: the full head (neck excluded); a point set's head_points or None
     source: str
     normals: np.ndarray | None = None  # (N, V, 3) unit point normals of a point set
     radius: np.ndarray | None = None  # (N, V) world-space point radii (metres) of a point set
@@ -180,7 +185,13 @@ def _point_geometry(path: Path, arrays: dict[str, np.ndarray], source: str) -> P
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     if (length < 1e-6).any():
         raise HeadforgeError(f"{path}: {int((length < 1e-6).sum())} normals have zero length")
-    return PredictedGeometry(frames.astype(np.int64), points, None, None, None, source,
+    face = head = None
+    if "face_points" in arrays or "head_points" in arrays:
+        g = _require(path, arrays, ("face_points", "head_points"))
+        if g["face_points"].shape != (P,) or g["head_points"].shape != (P,):
+            raise HeadforgeError(f"{path}: face_points / head_points must be ({P},) point masks")
+        face, head = g["face_points"].astype(bool), g["head_points"].astype(bool)
+    return PredictedGeometry(frames.astype(np.int64), points, None, face, head, source,
                              normals=normals / length, radius=radius)
 
 
@@ -289,14 +300,19 @@ def prediction_normals(prediction: PredictedGeometry, row: int, K: np.ndarray, r
 
 
 def _icp_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
-                 gt_face_vertices: np.ndarray) -> np.ndarray:
+                 gt_face_vertices: np.ndarray, centre: bool = False) -> np.ndarray:
     """(4, 4) rigid ICP transform (point-to-point) taking the points ``source`` onto dense
-    samples of the GT face surface."""
+    samples of the GT face surface, started from the identity; ``centre``: also from the
+    translation that puts the source's centroid on the GT face's, keeping the lower final cost."""
     gt_face = trimesh.Trimesh(gt_verts, gt_faces[gt_face_vertices[gt_faces].all(1)], process=False)
     target, _ = trimesh.sample.sample_surface(gt_face, 30_000, seed=1)
-    matrix, _, _ = trimesh.registration.icp(np.asarray(source, np.float64), target, initial=np.eye(4),
-                                            max_iterations=40, scale=False)
-    return matrix
+    source = np.asarray(source, np.float64)
+    starts = [np.eye(4)]
+    if centre:
+        starts.append(np.eye(4))
+        starts[1][:3, 3] = target.mean(0) - source.mean(0)
+    fits = [trimesh.registration.icp(source, target, initial=s, max_iterations=40, scale=False) for s in starts]
+    return min(fits, key=lambda fit: fit[2])[0]
 
 
 def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
@@ -311,10 +327,12 @@ def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndar
 def align_face_points(face_points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                       gt_face_vertices: np.ndarray) -> np.ndarray:
     """(4, 4) the rigid ICP transform that aligns a point set's face points (at most 5000 of them,
-    a fixed random subset) to the GT face surface: :func:`align_face` with the points as its source."""
+    a fixed random subset) to the GT face surface: :func:`align_face` with the points as its
+    source, also started from the centroids' offset (a point avatar carries its tracking's depth
+    error, centimetres, beyond what 40 ICP steps from the identity undo)."""
     if len(face_points) > 5000:
         face_points = face_points[np.random.default_rng(2).choice(len(face_points), 5000, replace=False)]
-    return _icp_to_face(face_points, gt_verts, gt_faces, gt_face_vertices)
+    return _icp_to_face(face_points, gt_verts, gt_faces, gt_face_vertices, centre=True)
 
 
 def gt_point_labels(points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
@@ -525,15 +543,21 @@ def _distance_row(full: dict, face: dict, cam_full: dict, cam_face: dict, full_o
 
 def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray, gv: np.ndarray, gf: np.ndarray,
                      gt_labels: np.ndarray, head_labels: np.ndarray, labels_face: int, outer: np.ndarray,
-                     frame: int) -> tuple[dict, np.ndarray, np.ndarray]:
+                     frame: int, regions: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
     """A point set's distance figures (mm) and normal consistency on one frame (the definitions
-    of the module docstring), and its aligned points and normals."""
+    of the module docstring), and its aligned points and normals. ``regions``: the point set's
+    own (face, head) masks (P,), else the GT labels decide."""
     scored = points[subset]
     _, distance, _, label = gt_point_labels(scored, gv, gf, gt_labels)
-    head = np.isin(label, head_labels)
-    face = head & (label == labels_face)
+    if regions is None:
+        head = np.isin(label, head_labels)
+        face = head & (label == labels_face)
+    else:
+        head = regions[1][subset]
+        face = head & regions[0][subset]
     if not face.any():
-        raise HeadforgeError(f"frame {frame}: none of the prediction's points is nearest the ground-truth face")
+        raise HeadforgeError(f"frame {frame}: none of the prediction's scored points is a face point"
+                             + (" (nearest the ground-truth face)" if regions is None else " (its face_points)"))
     matrix = align_face_points(scored[face], gv, gf, gt_labels == labels_face)
     R, t = matrix[:3, :3], matrix[:3, 3]
     aligned, aligned_n = points @ R.T + t, normals @ R.T
@@ -586,8 +610,9 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         nae_head, nae_face = _normal_errors(pred_n, gt_n, head_px, face_px)
         gv, gf = gt["vertices"][row], gt["faces"]
         if prediction.is_points:
+            regions = None if prediction.face_vertices is None else (prediction.face_vertices, prediction.head_vertices)
             scores, aligned, aligned_n = _point_distances(verts, prediction.normals[i], subset, gv, gf, gt["labels"],
-                                                          head_labels, labels_face, outer, int(f))
+                                                          head_labels, labels_face, outer, int(f), regions)
             if views is None:
                 views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
                                         pred_radius=prediction.radius[i])

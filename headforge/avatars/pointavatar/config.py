@@ -18,6 +18,7 @@ class PointAvatarConfig(EngineConfig):
     init_points: int = 400
     max_points: int = 409_600
     init_radius: float = 0.6  # initial sphere (and the SDF's initial zero set), normalised units (x 0.15 m)
+    init_cloud: str = "sphere"  # sphere: the paper; head: on the canonical head model's surface (docs/pointavatar.md)
     init_point_radius: float = 0.0  # world radius (m) of the initial discs; 0: discs covering the sphere twice
     radius_factor: float = 0.75  # radius multiple at each doubling
     upsample_every: int = 625  # iterations between doublings (the authors' 5 epochs)
@@ -89,6 +90,8 @@ class PointAvatarConfig(EngineConfig):
         self.checkpoint_every = max(1, round(self.checkpoint_every * f))
 
     def validate(self) -> None:
+        if self.init_cloud not in ("sphere", "head"):
+            raise HeadforgeError(f"init_cloud must be sphere or head, got {self.init_cloud!r}")
         if self.shading not in ("learned", "none"):
             raise HeadforgeError(f"shading must be learned or none, got {self.shading!r}")
         if self.init_points < 1 or self.max_points < self.init_points:

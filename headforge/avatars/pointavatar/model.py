@@ -109,7 +109,11 @@ class PointAvatarModel(Avatar):
         self.shading_net = ShadingNet(config.shading_width, config.shading_layers) if config.shading != "none" else None
         self.colour_net = ShadingNet(config.shading_width, config.shading_layers, in_dim=6) if config.shading == "none" else None
         gen = torch.Generator().manual_seed(config.seed)
-        self.points = nn.Parameter(sphere_points(config.init_points, config.init_radius, gen))
+        if config.init_cloud == "head":  # the tracked head model's canonical surface (x_o = x_c: no offset yet)
+            start = surface_points(out.vertices[0], self.head.faces, config.init_points, gen)
+            self.points = nn.Parameter((start - out.vertices[0].mean(0)) / SCALE)
+        else:
+            self.points = nn.Parameter(sphere_points(config.init_points, config.init_radius, gen))
         radius = config.init_point_radius or initial_point_radius(config.init_points, config.init_radius)
         self.register_buffer("radius", torch.tensor(radius))  # world metres
         self.register_buffer("visible", torch.zeros(config.init_points, dtype=torch.bool))
@@ -276,8 +280,20 @@ class PointAvatarModel(Avatar):
         return out
 
     def geometry(self, params) -> Geometry:
-        _, pts, n_cam, _ = self.posed(params)
-        return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]))
+        """The posed points in camera space with their normals and radii, and their regions as a
+        mesh avatar's template gives them: a point is a face (head) point when the canonical head
+        model's vertex nearest its x_o is in the face region (in neither neck region, as the
+        tracked head model's regions in :func:`headforge.metrics.benchmark.tracked_geometry`)."""
+        c, pts, n_cam, _ = self.posed(params)
+        nearest = self.nearest_canonical_vertices(c.q * SCALE + self.centre + c.O).to(pts.device)
+        face = torch.zeros(self.head.num_vertices, dtype=torch.bool, device=pts.device)
+        face[self.head.region("face")] = True
+        keep = torch.ones_like(face)
+        for region in ("neck", "lower_neck"):
+            if region in self.head.region_names:
+                keep[self.head.region(region)] = False
+        return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]), face_vertices=face[nearest],
+                        head_vertices=keep[nearest])
 
     # ---- coarse to fine ---------------------------------------------------------------------
     def prune(self) -> int:
@@ -351,6 +367,18 @@ def sphere_points(n: int, radius: float, gen: torch.Generator) -> torch.Tensor:
     """(n, 3) points uniformly on a sphere of ``radius`` (normalised units) about the origin."""
     p = torch.randn(n, 3, generator=gen)
     return p / p.norm(dim=1, keepdim=True) * radius
+
+
+def surface_points(vertices: torch.Tensor, faces: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
+    """(n, 3) points uniformly distributed by area on the mesh (vertices (V, 3), faces (F, 3))."""
+    tri = vertices[faces]  # (F, 3, 3)
+    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=1)
+    face = torch.multinomial(area, n, replacement=True, generator=gen)
+    u, v = torch.rand(n, generator=gen), torch.rand(n, generator=gen)
+    flip = u + v > 1  # fold the unit square onto the triangle
+    u, v = torch.where(flip, 1 - u, u), torch.where(flip, 1 - v, v)
+    t = tri[face]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
 
 
 def fill_holes(features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
