@@ -59,6 +59,41 @@ def test_umeyama_recovers_similarity():
     assert abs(s - 1.3) < 1e-9 and np.allclose(R2, R) and np.allclose(t, [1, 2, 3])
 
 
+def test_prune_schedule_coarse_to_fine():
+    from headforge.craft.register import StageConfig
+
+    fixed = StageConfig(steps=100, lr=1e-2, chamfer=1, edge=1, laplacian=1, prune_units=3.0)
+    assert {fixed.prune_at(k) for k in (0, 50, 99)} == {3.0}
+    ramp = replace(fixed, prune_start_units=12.0, prune_decay=0.5)
+    assert ramp.prune_at(0) == pytest.approx(12.0)
+    assert ramp.prune_at(25) == pytest.approx(6.0)  # geometric: halfway in log space
+    assert ramp.prune_at(50) == pytest.approx(3.0) and ramp.prune_at(99) == pytest.approx(3.0)
+    assert all(ramp.prune_at(k) >= ramp.prune_at(k + 1) for k in range(99))
+
+
+def test_outer_face_is_the_face_beyond_the_inner_landmarks(template):
+    import torch
+    from scipy.spatial import cKDTree
+
+    from headforge.craft import register as R
+    from headforge.head.landmarks import FACE_OVAL
+
+    tpl, _ = template
+    outer = R.outer_face(tpl, 20.0).numpy()
+    face = np.zeros(tpl.n_vertices, bool)
+    face[tpl.regions["face"]] = True
+    assert outer.any() and not (outer & ~face).any()
+    assert 0.03 < outer.sum() / face.sum() < 0.3, outer.sum()
+    rest = R.dense_base(tpl, {}, {}).numpy()
+    with torch.no_grad():
+        lmk = tpl.lmk_model().landmarks[0].numpy()
+    inner = np.setdiff1d(np.arange(478), FACE_OVAL)
+    assert not outer[cKDTree(rest).query(lmk[inner])[1]].any()  # eyes, nose, mouth, cheeks stay out
+    top = tpl.regions["face"][np.argmax(rest[tpl.regions["face"], 1])]
+    assert outer[top]  # the forehead's top (where a hairline lies) is in
+    assert R.outer_face(tpl, 30.0).numpy().sum() < outer.sum()
+
+
 @pytest.mark.slow  # ~1-2 min on 2 cores: a remeshed scan and two registrations
 def test_two_stage_registration_fits_hair(template, scan_set):
     from headforge.craft import register as R
@@ -66,7 +101,7 @@ def test_two_stage_registration_fits_hair(template, scan_set):
 
     tpl, _ = template
     scan, gt = load_any(scan_set / "id001", ItemOptions())
-    cfg = _fast(R.RegisterConfig.quick())
+    cfg = replace(_fast(R.RegisterConfig.quick()), stage1_face_margin_mm=20.0)
     none = replace(cfg, stage1=replace(cfg.stage1, enabled=False), stage2=replace(cfg.stage2, enabled=False))
     base = R.register(tpl, scan, none)
     reg = R.register(tpl, scan, cfg)
@@ -81,6 +116,12 @@ def test_two_stage_registration_fits_hair(template, scan_set):
     # frozen parts did not move; displacements stay within the clip range
     frozen = np.union1d(tpl.regions["eyeballs"], tpl.regions["lower_neck"])
     assert reg.displacement[frozen].abs().max() < 1e-9
+    # stage 1 moves the scalp, neck and the outer face (forehead, temples: hair lies there), not the inner face
+    outer = R.outer_face(tpl, cfg.stage1_face_margin_mm).numpy()
+    inner = np.setdiff1d(tpl.regions["face"], np.nonzero(outer)[0])
+    moved1 = (reg.stage1 - reg.base).norm(dim=-1).numpy()
+    assert moved1[inner].max() < 1e-9 and moved1[tpl.regions["ears"]].max() < 1e-9
+    assert np.median(moved1[outer]) > 1e-5, np.median(moved1[outer])
     assert reg.displacement.abs().max() <= 20 / 120 + 1e-9
 
 

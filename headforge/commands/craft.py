@@ -183,13 +183,17 @@ def evaluate(run: Path = typer.Argument(..., help="run folder of headforge craft
              points: int = typer.Option(2048, help="points per mesh (the paper: 10K)"),
              seeds: int = typer.Option(3, help="sampling seeds (mean and spread)"),
              truncation: float = typer.Option(1.0, help="truncation psi"),
+             identities: str = typer.Option("sampled", help="sampled (the paper: random identity, expression, jaw) or "
+                                                            "heldout (diagnostic: each map on a held-out scan's own "
+                                                            "registered identity and expression)"),
              output: Path | None = typer.Option(None, "-o", "--output", help="JSON (+ .md table) to write (default RUN/eval.json)")) -> None:
     """MMD-CD, COV-CD, 1-NNA and JSD on held-out registrations, and the memorisation check."""
     from headforge.craft.generative import evaluate as E
 
     try:
         methods = None if model == "all" else [model]
-        result = E.evaluate(run, heldout, methods, tuple(range(seeds)), points, truncation, log=typer.echo)
+        result = E.evaluate(run, heldout, methods, tuple(range(seeds)), points, truncation, log=typer.echo,
+                            identities=identities)
         path = output or run / "eval.json"
         E.write(result, path)
     except HeadforgeError as exc:

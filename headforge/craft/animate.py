@@ -113,16 +113,38 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, size: int = 256, yaws=
     return np.concatenate([render_mesh(vertices, faces, col, size, yaw, target, distance=0.65) for yaw in yaws], 1)
 
 
-def animate(template: Template, duv: uvmap.DenseUV, map_m: np.ndarray, identity: dict | None, dataset: str | Path,
-            head_model: str, output: str | Path, max_frames: int | None = 150, size: int = 256,
-            yaws=(0.0, 60.0), log=print) -> int:
-    """Render the map on ``identity`` driven by a tracked dataset to an MP4 (atomic); returns
-    the number of frames."""
+def sweep_frames(template: Template, frames: int = 48) -> list[dict]:
+    """A built-in driving sequence when no tracked video is at hand (``headforge demo --method
+    headcraft``): the jaw opens and closes, a smile comes and goes, the head turns 25 degrees
+    left and right; ``frames`` per-frame parameter dicts like :func:`driving_frames`'."""
+    from headforge.head.pose import POSE_KEYS
+
+    names = list(template.model.expression_names)
+    E = template.model.n_expr
+    out = []
+    for k in range(frames):
+        t = 2 * np.pi * k / frames
+        expr = torch.zeros(1, E)
+        for name, value in (("jawOpen", max(0.0, np.sin(t))), ("mouthSmileLeft", max(0.0, -np.sin(t))),
+                            ("mouthSmileRight", max(0.0, -np.sin(t)))):
+            if name in names:
+                expr[0, names.index(name)] = float(value)
+        frame = {"expression": expr, **{key: torch.zeros(1, 3) for key in POSE_KEYS}}
+        frame["jaw_pose"][0, 0] = 0.25 * max(0.0, float(np.sin(t)))
+        frame["root_pose"][0, 1] = float(np.radians(25.0) * np.sin(2 * t))
+        out.append(frame)
+    return out
+
+
+def render_animation(template: Template, duv: uvmap.DenseUV, map_m: np.ndarray, identity: dict | None,
+                     params: list[dict], fps: float, output: str | Path, size: int = 256, yaws=(0.0, 60.0),
+                     log=print) -> int:
+    """Render the map on ``identity`` posed by ``params`` (per-frame dicts) to an MP4 (atomic);
+    returns the number of frames."""
     from rich.progress import track
 
     from headforge.render.io import write_mp4
 
-    params, fps = driving_frames(dataset, head_model, max_frames)
     anim = Animator(template, duv, map_m, identity)
     faces = template.faces.numpy()
     imgs = []
@@ -132,3 +154,12 @@ def animate(template: Template, duv: uvmap.DenseUV, map_m: np.ndarray, identity:
     write_mp4(output, imgs, fps=fps)  # atomic
     log(f"{len(imgs)} frames -> {output}")
     return len(imgs)
+
+
+def animate(template: Template, duv: uvmap.DenseUV, map_m: np.ndarray, identity: dict | None, dataset: str | Path,
+            head_model: str, output: str | Path, max_frames: int | None = 150, size: int = 256,
+            yaws=(0.0, 60.0), log=print) -> int:
+    """Render the map on ``identity`` driven by a tracked dataset to an MP4 (atomic); returns
+    the number of frames."""
+    params, fps = driving_frames(dataset, head_model, max_frames)
+    return render_animation(template, duv, map_m, identity, params, fps, output, size, yaws, log)

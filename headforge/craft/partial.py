@@ -82,6 +82,7 @@ class PartialConfig:
     @classmethod
     def quick(cls) -> PartialConfig:
         reg = R.RegisterConfig.quick()
+        reg.stage1_face_margin_mm = None  # stage 1 on scalp + neck only: the outer face was not tried here
         reg.stage1 = replace(_partial_stage1(), steps=400)
         reg.stage2 = replace(_partial_stage2(), steps=250, lr=1.5e-3)
         return cls(register=reg, fit=CloudFitConfig(rigid_steps=50, steps=200, fit_points=12_000))
@@ -89,6 +90,7 @@ class PartialConfig:
     @classmethod
     def paper(cls) -> PartialConfig:
         reg = R.RegisterConfig.paper()
+        reg.stage1_face_margin_mm = None
         reg.stage1 = _partial_stage1()
         reg.stage2 = _partial_stage2()
         return cls(register=reg)

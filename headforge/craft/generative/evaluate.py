@@ -33,23 +33,28 @@ from headforge.metrics import distribution as dist
 
 
 def heldout_set(folder: str | Path, meta: dict, points: int, seed: int = 0) -> dict:
-    """Clouds (S, P, 3) of the held-out registered meshes, which are neutral, and their maps at
-    the run's resolution (for the memorisation check). Maps of the run's training keys are
-    skipped (so the training folder itself can be passed when the run held identities out);
-    an identity that is also in the training set is an error."""
+    """Clouds (S, P, 3) of the held-out registered meshes, their maps at the run's resolution
+    (for the memorisation check) and their head-model parameters. When ``folder`` is the run's
+    own training folder, its training keys are skipped (the identities the run held out) and an
+    identity on both sides is an error; any other folder is another scan set, whose keys name
+    its own identities."""
     import trimesh
 
     from headforge.craft.register import sample_scan
 
-    train_keys = set(meta["train_keys"])
-    train_ids = {D.identity_of(k) for k in train_keys}
-    items = [it for it in D.list_maps(folder) if it.key not in train_keys]
-    if not items:
-        raise HeadforgeError(f"every map of {folder} was used for training: pass held-out scans (other identities)")
-    shared = sorted({it.identity for it in items} & train_ids)
-    if shared:
-        raise HeadforgeError(f"held-out identities {shared[:3]} are also in the training set: pass other identities")
-    clouds, neutral, keys = [], [], []
+    items = D.list_maps(folder)
+    if Path(folder).resolve() == Path(meta["maps"]).resolve():  # the run's own folder: the identities it held out
+        train_keys = set(meta["train_keys"])
+        train_ids = {D.identity_of(k) for k in train_keys}
+        items = [it for it in items if it.key not in train_keys]
+        if not items:
+            raise HeadforgeError(f"every map of {folder} was used for training: pass held-out scans (other identities)")
+        shared = sorted({it.identity for it in items} & train_ids)
+        if shared:
+            raise HeadforgeError(f"held-out identities {shared[:3]} are also in the training set: pass other identities")
+    # another folder is another scan set: its keys name its own identities (id000 of a held-out set is
+    # not id000 of the training set); a scan that is in both is caught by its map (evaluate)
+    clouds, neutral, keys, params = [], [], [], []
     for it in items:
         ply = it.path.parent / "registered.ply"
         if not ply.is_file():
@@ -60,17 +65,22 @@ def heldout_set(folder: str | Path, meta: dict, points: int, seed: int = 0) -> d
         clouds.append(sample_scan(np.asarray(mesh.vertices), np.asarray(mesh.faces), points, seed)[:points])
         neutral.append(it.key == it.identity)
         keys.append(it.key)
+        params.append({k: np.asarray(v, np.float32).reshape(1, -1) for k, v in (it.params or {}).items()
+                       if k in ("shape", "expression", "jaw_pose")})
     ms = D.load_maps(folder, meta["resolution"])
     maps = ms.maps[[ms.keys.index(k) for k in keys]]
-    return {"clouds": np.stack(clouds), "neutral": np.asarray(neutral), "keys": keys, "maps": maps}
+    return {"clouds": np.stack(clouds), "neutral": np.asarray(neutral), "keys": keys, "maps": maps, "params": params}
 
 
-def generated_clouds(model: S.Model, n: int, seed: int, points: int, truncation: float) -> tuple[np.ndarray, np.ndarray]:
-    """(clouds (n, P, 3), post-processed maps (n, R, R, 3)) of ``n`` generated meshes."""
+def generated_clouds(model: S.Model, n: int, seed: int, points: int, truncation: float,
+                     params: list[dict] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(clouds (n, P, 3), post-processed maps (n, R, R, 3)) of ``n`` generated meshes, on
+    ``params`` (head-model parameters per mesh) or on sampled identities, expressions and jaws."""
     from headforge.craft.register import sample_scan
 
     maps = S.postprocess(S.sample_maps(model, n, truncation, seed), model.meta)
-    params = S.sample_identities(model.meta, n, seed, expressions=True)
+    if params is None:
+        params = S.sample_identities(model.meta, n, seed, expressions=True)
     verts = S.meshes(model.meta, maps, params)
     tpl, _ = S.template(model.meta)
     faces = tpl.faces.numpy()
@@ -94,8 +104,15 @@ def metrics(gen: np.ndarray, ref: np.ndarray, ref_neutral: np.ndarray, scale: fl
 
 
 def evaluate(run: str | Path, heldout: str | Path, methods: list[str] | None = None, seeds=(0, 1, 2), points: int = 2048,
-             truncation: float = 1.0, log=print) -> dict:
-    """Table rows {method: {metric: mean, metric_std: spread over seeds}} + memorisation."""
+             truncation: float = 1.0, log=print, identities: str = "sampled") -> dict:
+    """Table rows {method: {metric: mean, metric_std: spread over seeds}} + memorisation.
+
+    ``identities``: "sampled" (the paper: every generated map on an identity, expression and
+    jaw drawn from the training registrations' statistics) or "heldout" (a diagnostic: the k-th
+    generated map on the k-th held-out scan's own registered identity, expression and jaw, so
+    the two sets differ only by their displacement maps)."""
+    if identities not in ("sampled", "heldout"):
+        raise HeadforgeError(f"--identities must be sampled or heldout, got {identities!r}")
     from headforge.craft.generative.data import texel_islands
 
     meta = T.read_run(run)
@@ -103,20 +120,27 @@ def evaluate(run: str | Path, heldout: str | Path, methods: list[str] | None = N
     if not methods:
         raise HeadforgeError(f"{run} has no trained model")
     ref = heldout_set(heldout, meta, points)
+    if identities == "heldout" and not all("shape" in p for p in ref["params"]):
+        raise HeadforgeError(f"--identities heldout needs the held-out registrations' params.json (shape) in {heldout}")
+    fixed = ref["params"] if identities == "heldout" else None
     centre = ref["clouds"].reshape(-1, 3).mean(0)
     ref_c = ref["clouds"] - centre
     scale = 2 * float(np.abs(ref_c).max()) / 0.9  # fits [-0.45, 0.45]
     n = len(ref_c)
     train = D.from_model(T.train_maps(run))
     scalp = texel_islands(meta["head_model"], meta["levels"], meta["resolution"]) == 0
-    _, held_nn = scalp_distances(ref["maps"], train, scalp)
+    held_idx, held_nn = scalp_distances(ref["maps"], train, scalp)
+    if held_nn.min() < 1e-3:  # mm: the same registration on both sides
+        k = int(held_nn.argmin())
+        raise HeadforgeError(f"held-out map {ref['keys'][k]} is training map {meta['train_keys'][held_idx[k]]} of the run: "
+                             "pass scans of other identities")
     rows = {}
     for method in methods:
         model = S.load(run, method)
         per_seed = []
         sample_nn = []
         for s in seeds:
-            clouds, maps = generated_clouds(model, n, 1000 + s, points, truncation)
+            clouds, maps = generated_clouds(model, n, 1000 + s, points, truncation, fixed)
             per_seed.append(metrics(clouds - centre, ref_c, ref["neutral"], scale))
             if method != S.BARE:
                 sample_nn.append(scalp_distances(maps, train, scalp)[1])
@@ -133,7 +157,7 @@ def evaluate(run: str | Path, heldout: str | Path, methods: list[str] | None = N
         log(f"{method:10s} " + " ".join(f"{k} {row[k]:.3g}±{row[k + '_std']:.2g}" for k in ("mmd", "cov", "one_nna", "jsd")))
     return {"rows": rows, "heldout_nn_mm": float(np.median(held_nn)), "heldout_nn_min_mm": float(held_nn.min()),
             "n_heldout": n, "n_neutral": int(ref["neutral"].sum()), "points": points, "seeds": list(seeds),
-            "truncation": truncation, "jsd_grid": 28, "mmd_unit": "mm^2 (Chamfer: sum of both mean squared NN distances)",
+            "truncation": truncation, "identities": identities, "jsd_grid": 28, "mmd_unit": "mm^2 (Chamfer: sum of both mean squared NN distances)",
             "resolution": meta["resolution"], "n_train": len(meta["train_keys"])}
 
 
