@@ -103,9 +103,8 @@ class RegisterConfig:
     stage2_regions: tuple = ("face", "scalp")  # normal displacements here; neck, eyes, ears, mouth frozen
     # face vertices this far from the inner landmarks (forehead, temples, in front of the ears) join
     # stage 1: open-head's face region reaches the hairline, and hair there was out of stage 1's
-    # reach (tuning bob 10.0 -> 6.8 mm, curly 7.9 -> 4.0 mm hair p95); None: off (the default until
-    # the held-out measurement, docs/headcraft.md)
-    stage1_face_margin_mm: float | None = None
+    # reach (tuning set: bob 10.0 -> 6.8 mm, curly 7.9 -> 4.0 mm hair p95; held-out: docs/headcraft.md)
+    stage1_face_margin_mm: float | None = 20.0
     threads: int = 1  # torch and KD-tree threads; on shared 2-core hosts 1 is several times faster than 2
 
     @classmethod
