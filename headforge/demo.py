@@ -9,9 +9,10 @@ interrupted demo resumes its finished steps."""
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from pathlib import Path
+
+from headforge.paths import publish_report
 
 GEOMETRY_FIGURES = ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm", "hausdorff_full_outer_mm",
                     "head_coverage")
@@ -132,10 +133,5 @@ def run_demo(output: Path, video: Path | None = None, iterations: int | None = N
         for name, prefix in (("tracked", "reference_"), (method, "")):
             metrics[f"{name}_paired_normal_error_head_deg"] = round(pair[prefix + "normal_error_head_deg"], 3)
     metrics["demo_minutes"] = round((time.perf_counter() - start) / 60, 2)
-    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
-    (tmp / "metrics.md").write_text("\n".join(table) + "\n")
-    if output.exists():
-        shutil.rmtree(output)
-    tmp.replace(output)
+    publish_report(tmp, output, metrics)
     return metrics

@@ -56,3 +56,17 @@ def open_partial(output: Path, settings: dict, log) -> Path:
     make_folder(work)
     (work / "settings.json").write_text(json.dumps(settings))
     return work
+
+
+def publish_report(work: Path, output: Path, metrics: dict) -> None:
+    """Finish a report folder: ``metrics.json`` and a ``metrics.md`` table (figure | value) written
+    into the work folder (``OUTPUT.partial``), which then replaces ``output``."""
+    import json
+    import shutil
+
+    (work / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
+    (work / "metrics.md").write_text("\n".join(table) + "\n")
+    if output.exists():
+        shutil.rmtree(output)
+    work.replace(output)

@@ -25,18 +25,19 @@ part-1 record; seed 0 is the tuning seed): the split is by identity.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from headforge.paths import publish_report
+
 
 @dataclass
 class CraftDemoConfig:
-    """Sizes of the demo. The default was measured at <= 15 min on the shared 2-core host
-    (docs/headcraft.md, part 2); tests shrink it further."""
+    """Sizes of the demo: the default took 12.1 min on the shared 2-core host (docs/headcraft.md,
+    part 2); tests shrink it further."""
 
     train_identities: int = 6
     held_identities: int = 3
@@ -150,10 +151,5 @@ def run_craft_demo(output: Path, config: CraftDemoConfig | None = None, log=prin
 
     metrics.update({f"minutes_{k}": v for k, v in minutes.items()})
     metrics["demo_minutes"] = round((time.perf_counter() - start) / 60, 2)
-    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in metrics.items()]
-    (tmp / "metrics.md").write_text("\n".join(table) + "\n")
-    if output.exists():
-        shutil.rmtree(output)
-    tmp.replace(output)
+    publish_report(tmp, output, metrics)
     return metrics
