@@ -258,8 +258,12 @@ def test_the_view_command_serves_until_interrupted(open_head_nha_run):
     import subprocess
     import sys
 
+    # a shell without job control starts background commands with SIGINT ignored, and a child
+    # inherits that (Python then installs no KeyboardInterrupt handler): give it Ctrl-C back, as a
+    # terminal would, so the test also runs under `nohup ... &`
     proc = subprocess.Popen([sys.executable, "-m", "headforge.cli", "view", str(open_head_nha_run), "--port", "0",
-                             "--texture-size", "32"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+                             "--texture-size", "32"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         url = proc.stdout.readline().strip()
         assert url.startswith("http://127.0.0.1:"), url
@@ -267,4 +271,7 @@ def test_the_view_command_serves_until_interrupted(open_head_nha_run):
         assert status == 200 and json.loads(body)["kind"] == "mesh"
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        try:
+            assert proc.wait(timeout=30) == 0
+        finally:
+            proc.kill()  # never leave a server behind when it did not stop
