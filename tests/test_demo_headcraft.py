@@ -21,8 +21,13 @@ def test_the_headcraft_demo_runs_end_to_end(tmp_path):
     cfg = CraftDemoConfig(train_identities=3, held_identities=2, map_size=32, register_steps_scale=0.02,
                           stylegan2_steps=2, resolution=32, settings=TINY, points=128, seeds=2, samples=2,
                           animation_frames=2, view_size=48, hair_voxel_mm=6.0, source="open-head")
+    stale = tmp_path / "demo.partial"  # an interrupted demo of other sizes: not resumed, started afresh
+    stale.mkdir()
+    (stale / "settings.json").write_text(json.dumps({"train_identities": 99}))
+    (stale / "stale.txt").write_text("left by another demo")
     metrics = run_craft_demo(out, cfg, log=lambda m: None)
     assert not (tmp_path / "demo.partial").exists()  # renamed only when complete
+    assert not (out / "stale.txt").exists()
     for name in REPORT:
         assert (out / name).is_file(), name
     assert json.loads((out / "metrics.json").read_text()) == metrics

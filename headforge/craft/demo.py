@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from headforge.paths import publish_report
+from headforge.paths import open_partial, publish_report
 
 
 @dataclass
@@ -65,15 +65,14 @@ def run_craft_demo(output: Path, config: CraftDemoConfig | None = None, log=prin
     from headforge.craft.generative import evaluate as E
     from headforge.craft.generative import sample as S
     from headforge.craft.generative import train as T
-    from headforge.craft.pipeline import map_sheet, register_item, template_for
+    from headforge.craft.pipeline import list_scans, map_sheet, register_item, template_for
     from headforge.craft.scans import ScanSetConfig, generate_scans, write_png
     from headforge.errors import HeadforgeError
 
     cfg = config or CraftDemoConfig()
     start = time.perf_counter()
     output = Path(output)
-    tmp = output.with_name(output.name + ".partial")
-    tmp.mkdir(parents=True, exist_ok=True)  # kept between attempts: every step resumes
+    tmp = open_partial(output, asdict(cfg), log)  # kept between attempts with the same sizes: every step resumes
     metrics: dict = {"model": "open-head"}
     minutes = {}
 
@@ -91,8 +90,6 @@ def run_craft_demo(output: Path, config: CraftDemoConfig | None = None, log=prin
 
     t0 = time.perf_counter()
     log(f"2/5 registering them ({cfg.register_steps_scale} of the quick preset's steps, {cfg.map_size} px maps)")
-    from headforge.craft.pipeline import list_scans
-
     for name in ("train", "held"):
         opts = dict(preset="quick", map_size=cfg.map_size, steps_scale=cfg.register_steps_scale)
         items = [(k, {"path": p, **opts}) for k, p in list_scans(tmp / f"scans_{name}")]

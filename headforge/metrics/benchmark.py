@@ -94,6 +94,19 @@ class PredictedGeometry:
         return "points" if self.is_points else "mesh"
 
 
+def scored_regions(regions, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """(face, head) (num_vertices,) bool masks of a head model's vertices that the geometry
+    metrics score: its ``face`` region, and every vertex outside its neck regions (``neck``,
+    ``lower_neck``). ``regions``: {name: vertex ids} (``HeadModelData.regions``)."""
+    face = np.zeros(num_vertices, bool)
+    face[np.asarray(regions["face"])] = True
+    head = np.ones(num_vertices, bool)
+    for region in ("neck", "lower_neck"):
+        if region in regions:
+            head[np.asarray(regions[region])] = False
+    return face, head
+
+
 def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeometry:
     """The tracked head model of a ``headforge track`` dataset at ``frames`` (camera space)."""
     from headforge.data.dataset import load_tracking, read_meta
@@ -113,13 +126,7 @@ def tracked_geometry(dataset: str | Path, frames: np.ndarray) -> PredictedGeomet
     with torch.no_grad():
         out = head(shape=tracked["shape"].expand(len(frames), -1), **{k: tracked[k][idx] for k in FRAME_KEYS[:-1]})
         verts = head_to_camera(out.vertices, tracked["translation"][idx])
-    V = verts.shape[1]
-    face = np.zeros(V, bool)
-    face[data.regions["face"]] = True
-    head_mask = np.ones(V, bool)
-    for region in ("neck", "lower_neck"):
-        if region in data.regions:
-            head_mask[data.regions[region]] = False
+    face, head_mask = scored_regions(data.regions, verts.shape[1])
     return PredictedGeometry(frames, verts.numpy(), data.faces, face, head_mask, f"tracked {meta['model']} ({dataset})")
 
 

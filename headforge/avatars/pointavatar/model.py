@@ -110,8 +110,11 @@ class PointAvatarModel(Avatar):
         self.colour_net = ShadingNet(config.shading_width, config.shading_layers, in_dim=6) if config.shading == "none" else None
         gen = torch.Generator().manual_seed(config.seed)
         if config.init_cloud == "head":  # the tracked head model's canonical surface (x_o = x_c: no offset yet)
-            start = surface_points(out.vertices[0], self.head.faces, config.init_points, gen)
-            self.points = nn.Parameter((start - out.vertices[0].mean(0)) / SCALE)
+            import trimesh
+
+            mesh = trimesh.Trimesh(self.canonical_vertices.detach().numpy(), self.head.faces.numpy(), process=False)
+            start, _ = trimesh.sample.sample_surface(mesh, config.init_points, seed=config.seed)  # area-uniform
+            self.points = nn.Parameter((torch.from_numpy(start).float() - self.centre) / SCALE)
         else:
             self.points = nn.Parameter(sphere_points(config.init_points, config.init_radius, gen))
         radius = config.init_point_radius or initial_point_radius(config.init_points, config.init_radius)
@@ -284,16 +287,15 @@ class PointAvatarModel(Avatar):
         mesh avatar's template gives them: a point is a face (head) point when the canonical head
         model's vertex nearest its x_o is in the face region (in neither neck region, as the
         tracked head model's regions in :func:`headforge.metrics.benchmark.tracked_geometry`)."""
+        from headforge.metrics.benchmark import scored_regions
+
         c, pts, n_cam, _ = self.posed(params)
-        nearest = self.nearest_canonical_vertices(c.q * SCALE + self.centre + c.O).to(pts.device)
-        face = torch.zeros(self.head.num_vertices, dtype=torch.bool, device=pts.device)
-        face[self.head.region("face")] = True
-        keep = torch.ones_like(face)
-        for region in ("neck", "lower_neck"):
-            if region in self.head.region_names:
-                keep[self.head.region(region)] = False
-        return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]), face_vertices=face[nearest],
-                        head_vertices=keep[nearest])
+        nearest = self.nearest_canonical_vertices(c.q * SCALE + self.centre + c.O).cpu().numpy()
+        face, head = scored_regions({name: self.head.region(name).cpu() for name in self.head.region_names},
+                                    self.head.num_vertices)
+        as_mask = lambda m: torch.from_numpy(m[nearest]).to(pts.device)  # noqa: E731
+        return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]), face_vertices=as_mask(face),
+                        head_vertices=as_mask(head))
 
     # ---- coarse to fine ---------------------------------------------------------------------
     def prune(self) -> int:
@@ -367,18 +369,6 @@ def sphere_points(n: int, radius: float, gen: torch.Generator) -> torch.Tensor:
     """(n, 3) points uniformly on a sphere of ``radius`` (normalised units) about the origin."""
     p = torch.randn(n, 3, generator=gen)
     return p / p.norm(dim=1, keepdim=True) * radius
-
-
-def surface_points(vertices: torch.Tensor, faces: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
-    """(n, 3) points uniformly distributed by area on the mesh (vertices (V, 3), faces (F, 3))."""
-    tri = vertices[faces]  # (F, 3, 3)
-    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=1)
-    face = torch.multinomial(area, n, replacement=True, generator=gen)
-    u, v = torch.rand(n, generator=gen), torch.rand(n, generator=gen)
-    flip = u + v > 1  # fold the unit square onto the triangle
-    u, v = torch.where(flip, 1 - u, u), torch.where(flip, 1 - v, v)
-    t = tri[face]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
 
 
 def fill_holes(features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
