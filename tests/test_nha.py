@@ -863,9 +863,10 @@ def test_gt_supervision_feeds_nhas_normal_and_semantic_terms_on_training_frames_
 
 
 def test_the_normal_and_semantic_terms_vanish_on_their_own_ground_truth():
-    """E_normal of a normal map against itself is 0 and grows with a bump the render lacks;
+    """E_normal of a normal map against itself is 0 and grows with a bump the render lacks, but
+    is blind to a tilted plane, which the absolute normal term sees;
     E_semantic of class maps that are the labels' own regions is 0."""
-    from headforge.avatars.nha.method import GT_LABELS_OF_CLASS, normal_term, semantic_gt_term
+    from headforge.avatars.nha.method import GT_LABELS_OF_CLASS, normal_abs_term, normal_term, semantic_gt_term
     from headforge.avatars.nha.model import SEMANTIC_CLASSES
 
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1, 1, 32), indexing="ij")
@@ -877,6 +878,14 @@ def test_the_normal_and_semantic_terms_vanish_on_their_own_ground_truth():
     bump = normals.clone()
     bump[0, 14:18, 14:18, 0] += 0.3
     assert normal_term(normals, torch.nn.functional.normalize(bump, dim=-1), inside, area) > 0.01
+    # a flat plane tilted 30 degrees against a flat plane: E_normal cannot see it, the absolute term does
+    flat = torch.zeros_like(normals)
+    flat[..., 2] = -1
+    tilted = torch.zeros_like(normals)
+    tilted[..., 0], tilted[..., 2] = 0.5, -(0.75 ** 0.5)
+    assert normal_term(flat, tilted, inside, area) < 1e-6
+    assert normal_abs_term(flat, flat, inside, area) == 0
+    assert normal_abs_term(flat, tilted, inside, area) > 0.5
     labels = torch.zeros(1, 32, 32, dtype=torch.long)
     labels[0, :16] = GT_LABELS_OF_CLASS["hair"][0]
     labels[0, 16:] = GT_LABELS_OF_CLASS["skin"][0]

@@ -40,6 +40,7 @@ class NHAConfig(EngineConfig):
     w_silhouette: float = 10.0
     w_contour: float = 1.0
     w_normal: float = 1.0  # NHA's E_normal on GT normal maps (--supervision gt); the paper gives no value
+    w_normal_abs: float = 0.0  # beyond NHA: L1 of the normals themselves against the GT maps (--supervision gt); measured in docs/nha_table1.md
     w_classes: float = 5.0  # NHA's E_semantic on GT labels (--supervision gt): skin+neck, eyes, hair; as w_semantic
     semantic_classes: str = "labels"  # labels: voted from the GT labels (--supervision gt only); template: the head model's regions; bob 22.48 -> 19.12 deg (docs/nha_table1.md)
     w_semantic: float = 5.0  # face-oval region of the avatar vs the detected landmarks' face oval

@@ -143,7 +143,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     gt = batch.get("gt_known")
     gt = gt if gt is not None and stage != "texture" and bool(gt.any()) else None
     r = avatar.render(params, Cameras.at_origin(K, B, res), background=1.0, texture=photometric, face_region=semantic,
-                      matte=False, normals=gt is not None and config.w_normal > 0,
+                      matte=False, normals=gt is not None and (config.w_normal > 0 or config.w_normal_abs > 0),
                       classes=gt is not None and config.w_classes > 0)
     area = energy_area(batch["region"], avatar.train_ring, r.vertices, K, res)
     gt_mask = batch["mask"] * area
@@ -167,6 +167,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
         known = area & gt[:, None, None]
         if config.w_normal > 0:
             out["normal"] = config.w_normal * normal_term(r.normals, batch["gt_normals"], r.fragments.face_id >= 0, known)
+        if config.w_normal_abs > 0:
+            out["normal_abs"] = config.w_normal_abs * normal_abs_term(r.normals, batch["gt_normals"], r.fragments.face_id >= 0, known)
         if config.w_classes > 0:
             out["classes"] = config.w_classes * semantic_gt_term(r.classes, batch["gt_labels"], known)
     if config.w_contour > 0:
@@ -228,6 +230,15 @@ def normal_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.
     It matches detail (folds, the hair's relief), not the normals' absolute directions."""
     valid = with_neighbours(covered & (gt_normals.norm(dim=-1) > 0.5)) & area
     diff = (image_laplacian(normals) - image_laplacian(gt_normals)).abs().sum(-1)
+    return (diff * valid).sum() / valid.sum().clamp(min=1)
+
+
+def normal_abs_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
+    """Beyond NHA: L1 between the rendered and the ground-truth camera-space normals themselves
+    (B, H, W, 3), summed over the channels, mean over the pixels of ``area`` (B, H, W) bool that
+    both maps cover. Unlike E_normal it is not zero on a smooth surface of the wrong orientation."""
+    valid = covered & (gt_normals.norm(dim=-1) > 0.5) & area
+    diff = (normals - gt_normals).abs().sum(-1)
     return (diff * valid).sum() / valid.sum().clamp(min=1)
 
 
