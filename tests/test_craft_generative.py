@@ -165,6 +165,24 @@ def test_truncation_zero_gives_the_mean_map(run):
     assert np.allclose(S.sample_maps(vae, 1, 0.0, seed=0), S.sample_maps(vae, 1, 0.0, seed=9))
 
 
+def test_vqvae_decodes_its_own_codes_as_its_forward_pass():
+    """The VQ-VAE's samples decode PixelCNN codes: decoding a map's own codes must give the same
+    map as the forward pass (the quantiser's index lookup is channel-first for image feature
+    maps; read as (B, h*w, dim) it scrambled every sample)."""
+    from headforge.craft.generative.vqvae import VQVAE, VQVAEConfig
+
+    torch.manual_seed(0)
+    model = VQVAE(VQVAEConfig(resolution=32, widths=[8, 8, 8], strides=[1, 2, 2], codebook=16))
+    x = torch.randn(4, 3, 32, 32) * 0.3
+    model.train()
+    model(x)  # k-means initialises the codebook
+    model.eval()
+    with torch.no_grad():
+        rec, idx, _ = model(x)
+    assert idx.shape == (4, 8, 8)
+    torch.testing.assert_close(model.decode_codes(idx), rec)
+
+
 def test_stylegan2_noise_off_on_the_face():
     from headforge.craft.generative.stylegan2 import Generator, StyleGAN2Config
 

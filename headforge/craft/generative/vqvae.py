@@ -75,9 +75,9 @@ class VQVAE(nn.Module):
 
     @torch.no_grad()
     def decode_codes(self, idx: torch.Tensor) -> torch.Tensor:
-        q = self.vq.get_codes_from_indices(idx.flatten(1))  # (B, h*w, dim)
-        B, h, w = idx.shape
-        return self.dec(q.reshape(B, h, w, -1).permute(0, 3, 1, 2))
+        """Maps (B, C, H, W) of codes (B, h, w). The quantiser's own image-layout lookup: its
+        ``get_codes_from_indices`` is channel-first for image feature maps, (B, dim, h*w)."""
+        return self.dec(self.vq.get_output_from_indices(idx))
 
 
 # ---------------------------------------------------------------- gated PixelCNN prior
