@@ -853,11 +853,12 @@ def test_gt_supervision_feeds_nhas_normal_and_semantic_terms_on_training_frames_
     batch = train.batch(torch.arange(2))
     assert batch["gt_normals"].shape == (2, res, res, 3) and batch["gt_labels"].max() > 0
     terms = losses(avatar, batch, train.K, tiny_config, "geometry")
-    assert terms["normal"] > 0 and terms["classes"] > 0
+    assert terms["normal"] > 0 and terms["normal_abs"] > 0 and terms["classes"] > 0
     avatar.zero_grad()
-    (terms["normal"] + terms["classes"]).backward()
+    (terms["normal"] + terms["normal_abs"] + terms["classes"]).backward()
     assert avatar.geometry_net.embedding.grad.abs().sum() > 0
-    assert "normal" not in losses(avatar, predicted.batch(torch.arange(2)), train.K, tiny_config, "geometry")
+    without_gt = losses(avatar, predicted.batch(torch.arange(2)), train.K, tiny_config, "geometry")
+    assert "normal" not in without_gt and "normal_abs" not in without_gt
     with pytest.raises(HeadforgeError, match="supervision must be"):
         FrameData(dataset, "train", res, supervision="oracle")
 

@@ -40,7 +40,7 @@ class NHAConfig(EngineConfig):
     w_silhouette: float = 10.0
     w_contour: float = 1.0
     w_normal: float = 1.0  # NHA's E_normal on GT normal maps (--supervision gt); the paper gives no value
-    w_normal_abs: float = 0.0  # beyond NHA: L1 of the normals themselves against the GT maps (--supervision gt); measured in docs/nha_table1.md
+    w_normal_abs: float = 1.0  # beyond NHA (paper preset: 0): L1 of the normals against the GT maps (--supervision gt); bob 18.55 -> 14.22 deg (docs/nha_table1.md)
     w_classes: float = 5.0  # NHA's E_semantic on GT labels (--supervision gt): skin+neck, eyes, hair; as w_semantic
     semantic_classes: str = "labels"  # labels: voted from the GT labels (--supervision gt only); template: the head model's regions; bob 22.48 -> 19.12 deg (docs/nha_table1.md)
     w_semantic: float = 5.0  # face-oval region of the avatar vs the detected landmarks' face oval
@@ -90,7 +90,7 @@ class NHAConfig(EngineConfig):
         return cls(resolution=512, laplacian_regions="table3", laplacian_operator="cotangent", laplacian_norm="l1",
                    laplacian_face_cut=False, edge_mode="mean", tex_last_width=128, tex_mapping_width=256,
                    mouth_condition="neck10", close_mouth=True, tex_weight_decay=1e-4, stage_epochs=(150, 100, 50),
-                   early_stop_frames=8)
+                   early_stop_frames=8, w_normal_abs=0.0)
 
     CHOICES = {"laplacian_regions": ("headforge", "table3"), "laplacian_operator": ("uniform", "cotangent"),
                "laplacian_norm": ("squared", "l1"), "edge_mode": ("template", "mean"),
