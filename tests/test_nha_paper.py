@@ -132,6 +132,7 @@ def test_paper_laplacian_is_l1_of_the_cotangent_laplacian(tiny_head):
 def test_paper_texture_network_has_app_a_widths(tiny_head):
     config = NHAConfig.paper()
     avatar = NeuralHeadAvatar(build_template(tiny_head, False, False, table3_regions=True), _tracking(tiny_head), config)
+    assert config.w_normal_abs == 0 and NHAConfig.quick().w_normal_abs > 0  # beyond the paper: quick only
     T = avatar.texture_net
     assert [lin.out_features for lin in T.siren.linears] == [256] * 7 + [128]
     assert [m.out_features for m in T.mapping.body if isinstance(m, torch.nn.Linear)] == [256] * 3
