@@ -867,7 +867,8 @@ def test_the_normal_and_semantic_terms_vanish_on_their_own_ground_truth():
     """E_normal of a normal map against itself is 0 and grows with a bump the render lacks, but
     is blind to a tilted plane, which the absolute normal term sees;
     E_semantic of class maps that are the labels' own regions is 0."""
-    from headforge.avatars.nha.method import GT_LABELS_OF_CLASS, normal_abs_term, normal_term, semantic_gt_term
+    from headforge.avatars.nha.method import GT_LABELS_OF_CLASS, normal_term, semantic_gt_term
+    from headforge.avatars.supervision import normal_abs_term
     from headforge.avatars.nha.model import SEMANTIC_CLASSES
 
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1, 1, 32), indexing="ij")

@@ -29,6 +29,7 @@ from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.nha.config import NHAConfig
 from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 from headforge.avatars.registry import register
+from headforge.avatars.supervision import normal_abs_term
 from headforge.errors import HeadforgeError
 from headforge.metrics.protocol import matte_on_white
 from headforge.render import mesh
@@ -230,15 +231,6 @@ def normal_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.
     It matches detail (folds, the hair's relief), not the normals' absolute directions."""
     valid = with_neighbours(covered & (gt_normals.norm(dim=-1) > 0.5)) & area
     diff = (image_laplacian(normals) - image_laplacian(gt_normals)).abs().sum(-1)
-    return (diff * valid).sum() / valid.sum().clamp(min=1)
-
-
-def normal_abs_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
-    """Beyond NHA: L1 between the rendered and the ground-truth camera-space normals themselves
-    (B, H, W, 3), summed over the channels, mean over the pixels of ``area`` (B, H, W) bool that
-    both maps cover. Unlike E_normal it is not zero on a smooth surface of the wrong orientation."""
-    valid = covered & (gt_normals.norm(dim=-1) > 0.5) & area
-    diff = (normals - gt_normals).abs().sum(-1)
     return (diff * valid).sum() / valid.sum().clamp(min=1)
 
 

@@ -59,6 +59,9 @@ class PointAvatarConfig(EngineConfig):
     w_weights: float = 1.0
     w_sdf: float = 1.0
     w_eikonal: float = 0.1
+    # beyond the paper (paper preset: 0): with --supervision gt, an L1 of the splatted normals
+    # against the subject's GT normal maps, as NHA's quick preset (docs/pointavatar.md)
+    w_normal_abs: float = 1.0
 
     @classmethod
     def quick(cls) -> "PointAvatarConfig":
@@ -72,7 +75,7 @@ class PointAvatarConfig(EngineConfig):
 
     @classmethod
     def paper(cls) -> "PointAvatarConfig":
-        return cls(resolution=512, batch=8)
+        return cls(resolution=512, batch=8, w_normal_abs=0.0)
 
     @property
     def total_iters(self) -> int:

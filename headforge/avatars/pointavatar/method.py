@@ -6,7 +6,8 @@ Energies over the protocol's head region (``batch["region"]``, from the tracked 
 RGB L1 against the frame matted on white, the mask L1, the head-model regulariser (expression
 blendshapes, pose correctives and skinning weights against the nearest canonical head-model
 vertex's), the SDF data term at the points and the Eikonal term at the points and perturbed
-copies. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
+copies; with ``--supervision gt`` (beyond the paper) an L1 of the splatted normals against the
+GT normal maps. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
 as the paper's test-time tracking does.
 """
 
@@ -18,6 +19,7 @@ from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.pointavatar.config import PointAvatarConfig
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
+from headforge.avatars.supervision import normal_abs_term
 from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras
 
@@ -56,8 +58,11 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
     B = len(batch["index"])
     params = avatar.frame_params(batch["index"]) if params is None else params
     training = stage == "train"
+    # ground truth (a synth subject's training frames with --supervision gt): its normal maps
+    gt = batch.get("gt_known") if training and config.w_normal_abs > 0 else None
+    gt = gt if gt is not None and bool(gt.any()) else None
     r = avatar.render(params, Cameras.at_origin(K, B, config.resolution), background=1.0, training=training,
-                      hole_filling=False)
+                      hole_filling=False, normals=gt is not None)
     region = batch["region"]
     w = region[..., None].float()
     target = matte_on_white(batch["image"], batch["mask"])
@@ -69,6 +74,9 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
     out["mask"] = config.w_mask * ((r.coverage - batch["mask"]).abs() * region).sum() / region.sum().clamp(min=1)
     if config.w_ssim > 0:
         out["ssim"] = config.w_ssim * (1 - ssim(r.rgb * w + (1 - w), target * w + (1 - w)).mean())
+    if gt is not None:
+        known = region & gt[:, None, None]
+        out["normal_abs"] = config.w_normal_abs * normal_abs_term(r.normals, batch["gt_normals"], r.coverage > 0.5, known)
     c = r.canonical
     out["flame"] = config.w_flame * head_model_term(avatar, c, config)
     out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()
