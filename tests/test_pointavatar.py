@@ -252,3 +252,37 @@ def test_gt_supervision_trains_the_sdf_normals_on_the_gt_normal_maps(synth_bench
     predicted = FrameData(dataset, "train", config.resolution, head)
     assert "normal_abs" not in losses(avatar, predicted.batch(torch.arange(2)), predicted.K, config, "train")
     assert PointAvatarConfig.paper().w_normal_abs == 0 and PointAvatarConfig.quick().w_normal_abs > 0
+
+
+def test_relighting_is_blind_to_the_albedo_shading_ambiguity(rendered):
+    """a ∘ s = (a k) ∘ (s / k) for any per-channel k: a user's light (SH or Lambert) gives the same
+    colours whichever split training found, and a uniform light of irradiance 1 gives the albedo
+    under the clip's mean learned shading."""
+    from dataclasses import replace
+
+    from headforge.render.shading import constant_sh
+
+    class Scaled(torch.nn.Module):
+        def __init__(self, net, k):
+            super().__init__()
+            self.net, self.k = net, k
+
+        def forward(self, n):
+            return self.net(n) * self.k
+
+    avatar = deformed_avatar(rendered)
+    with torch.no_grad():
+        c = avatar.canonical(training=False)
+        _, _, _, n_d = avatar.posed(avatar.frame_params(torch.tensor([0, 1])))
+        k = torch.tensor([0.5, 1.5, 0.8], dtype=torch.float64)
+        shading_net = avatar.shading_net
+        scaled = replace(c, albedo=c.albedo / k)
+        for light in ({"sh": constant_sh(1.0).double()}, {"direction": torch.tensor([0.0, 0.3, 1.0], dtype=torch.float64)}):
+            before, _ = avatar.colours(c, n_d, light)
+            avatar.shading_net = Scaled(shading_net, k)
+            after, _ = avatar.colours(scaled, n_d, light)
+            avatar.shading_net = shading_net
+            assert torch.allclose(before, after, atol=1e-9)
+        uniform, _ = avatar.colours(c, n_d, {"sh": constant_sh(1.0).double()})
+        mean_shading = (shading_net(n_d) * 2).mean(1, keepdim=True)
+        assert torch.allclose(uniform, (c.albedo * mean_shading).clamp(0, 1), atol=1e-6)

@@ -232,7 +232,8 @@ class PointAvatarModel(Avatar):
         """(colour, shading), each (B, N, 3) in [0, 1], at deformed normals (B, N, 3). ``light``:
         None (the learned shading), {"rotate": (3, 3)} (the learned shading of rotated normals: a
         light-direction change), {"direction": (3,)} (Lambert) or {"sh": (9, 3)} (2nd-order SH),
-        the latter two with the learned albedo; directions in the posed head frame."""
+        the latter two with the learned albedo under the clip's mean light (a uniform light of 1
+        keeps the clip's brightness); directions in the posed head frame."""
         albedo = c.albedo.expand(normals.shape[0], -1, -1)
         if self.colour_net is not None:  # entangled colour (the ablation): one MLP of albedo features and normal
             colour = self.colour_net(torch.cat([normals, albedo], -1))
@@ -240,7 +241,15 @@ class PointAvatarModel(Avatar):
         if light is None or "rotate" in light:
             n = normals if light is None else normals @ light["rotate"].to(normals).T
             shading = self.shading_net(n) * 2
-        elif "direction" in light:
+            return (albedo * shading).clamp(0, 1), shading
+        # a light of the user's replaces the learned shading, relative to the clip's light: the
+        # learned shading's mean over the points (per channel) goes into the albedo first, so a
+        # uniform light of irradiance 1 keeps the clip's mean brightness and colour. a ∘ s is
+        # ambiguous up to a per-channel factor, and the shading MLP takes the skin's tint and
+        # brightness for its own once the normals are right (docs/pointavatar.md, relighting)
+        tint = (self.shading_net(normals) * 2).mean(1, keepdim=True)
+        albedo = albedo * tint
+        if "direction" in light:
             shading = lambert(normals, torch.ones_like(albedo), light["direction"], ambient=light.get("ambient", 0.3))
         else:
             shading = sh_shading(normals, light["sh"].to(normals)).clamp(min=0)
