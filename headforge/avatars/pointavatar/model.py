@@ -228,6 +228,11 @@ class PointAvatarModel(Avatar):
         n = torch.linalg.solve(jac.transpose(-1, -2), n_c.expand(B, -1, -1)[..., None])[..., 0]  # J^-T n_c
         return x_d, torch.nn.functional.normalize(n, dim=-1)
 
+    def learned_shading(self, normals: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3) shading in [0, 2] of the shading MLP (sigmoid x 2, the authors' code) at
+        normals (B, N, 3)."""
+        return self.shading_net(normals) * 2
+
     def colours(self, c: Canonical, normals: torch.Tensor, light: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(colour, shading), each (B, N, 3) in [0, 1], at deformed normals (B, N, 3). ``light``:
         None (the learned shading), {"rotate": (3, 3)} (the learned shading of rotated normals: a
@@ -240,14 +245,14 @@ class PointAvatarModel(Avatar):
             return colour, torch.ones_like(colour)
         if light is None or "rotate" in light:
             n = normals if light is None else normals @ light["rotate"].to(normals).T
-            shading = self.shading_net(n) * 2
+            shading = self.learned_shading(n)
             return (albedo * shading).clamp(0, 1), shading
         # a light of the user's replaces the learned shading, relative to the clip's light: the
         # learned shading's mean over the points (per channel) goes into the albedo first, so a
         # uniform light of irradiance 1 keeps the clip's mean brightness and colour. a ∘ s is
         # ambiguous up to a per-channel factor, and the shading MLP takes the skin's tint and
         # brightness for its own once the normals are right (docs/pointavatar.md, relighting)
-        tint = (self.shading_net(normals) * 2).mean(1, keepdim=True)
+        tint = self.learned_shading(normals).mean(1, keepdim=True)
         albedo = albedo * tint
         if "direction" in light:
             shading = lambert(normals, torch.ones_like(albedo), light["direction"], ambient=light.get("ambient", 0.3))
