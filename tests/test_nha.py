@@ -312,8 +312,8 @@ def test_joint_limited_avatar_starts_at_the_tracked_poses(synth_bench, tiny_conf
 
 
 def test_eyelid_term_measures_the_eye_opening():
-    from headforge.avatars.nha.model import EYELID_PAIRS
-    from headforge.avatars.nha.method import eyelid_term
+    from headforge.avatars.supervision import eyelid_term
+    from headforge.head.landmarks import EYELID_PAIRS
 
     torch.manual_seed(0)
     detected = torch.rand(2, 478, 2) * 200

@@ -1,10 +1,38 @@
-"""Energies on a synthetic subject's ground-truth maps (``--supervision gt``) that every avatar
-method can use, whatever its representation: they compare rendered maps with the maps of
-:class:`headforge.avatars.frames.FrameData`, not the geometry that produced them."""
+"""Energies that every avatar method can use, whatever its representation: they compare what a
+method renders or projects with what :class:`headforge.avatars.frames.FrameData` holds -- the
+landmarks (detected, or a synthetic subject's ground truth) and the ground-truth maps of
+``--supervision gt`` -- not the geometry that produced them."""
 
 from __future__ import annotations
 
 import torch
+
+from headforge.head.landmarks import EYELID_PAIRS
+
+# MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
+EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tolist()
+
+
+def landmark_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor:
+    """L1 (pixels) between projected model landmarks and detections, (B, L, 2) each, mean over
+    the landmarks that were detected (NaN rows in ``detected`` are skipped); the first
+    min(L, L') landmarks of both are compared."""
+    n = min(projected.shape[1], detected.shape[1])
+    ok = torch.isfinite(detected[:, :n]).all(-1)
+    diff = (projected[:, :n] - torch.nan_to_num(detected[:, :n])).abs().sum(-1)
+    return (diff * ok).sum() / ok.sum().clamp(min=1)
+
+
+def eyelid_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor:
+    """NHA's eye-lid energy: L1 between the avatar's and the detections' 2D offsets from each
+    upper to its lower eyelid landmark (EYELID_PAIRS), in pixels, over pairs detected in full.
+    The landmark term barely sees a blink (a few landmarks move a few pixels); this term
+    measures the eye opening itself. ``projected``/``detected``: (B, 478, 2) pixels."""
+    opening = projected[:, EYELID_UPPER] - projected[:, EYELID_LOWER]
+    target = detected[:, EYELID_UPPER] - detected[:, EYELID_LOWER]
+    ok = torch.isfinite(target).all(-1)
+    diff = (opening - torch.nan_to_num(target)).abs().sum(-1)
+    return (diff * ok).sum() / ok.sum().clamp(min=1)
 
 
 def normal_abs_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: torch.Tensor, area: torch.Tensor) -> torch.Tensor:

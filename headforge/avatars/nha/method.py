@@ -27,9 +27,8 @@ import torch
 
 from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.nha.config import NHAConfig
-from headforge.avatars.nha.model import EYELID_LOWER, EYELID_UPPER
 from headforge.avatars.registry import register
-from headforge.avatars.supervision import normal_abs_term
+from headforge.avatars.supervision import eyelid_term, landmark_term, normal_abs_term
 from headforge.errors import HeadforgeError
 from headforge.metrics.protocol import matte_on_white
 from headforge.render import mesh
@@ -114,18 +113,6 @@ def contour_term(avatar, vertices: torch.Tensor, gt_mask: torch.Tensor, area: to
     return torch.stack(terms).mean() / res
 
 
-def eyelid_term(projected: torch.Tensor, detected: torch.Tensor) -> torch.Tensor:
-    """NHA's eye-lid energy: L1 between the avatar's and the detections' 2D offsets from each
-    upper to its lower eyelid landmark (EYELID_PAIRS), in pixels, over pairs detected in full.
-    The landmark term barely sees a blink (a few landmarks move a few pixels); this term
-    measures the eye opening itself. ``projected``/``detected``: (B, 478, 2) pixels."""
-    opening = projected[:, EYELID_UPPER] - projected[:, EYELID_LOWER]
-    target = detected[:, EYELID_UPPER] - detected[:, EYELID_LOWER]
-    ok = torch.isfinite(target).all(-1)
-    diff = (opening - torch.nan_to_num(target)).abs().sum(-1)
-    return (diff * ok).sum() / ok.sum().clamp(min=1)
-
-
 def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
            params: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """Weighted energy terms of one batch. ``stage``: geometry, texture or joint (the training
@@ -153,11 +140,8 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     lmk = batch["landmarks"]
     if r.landmarks is not None:
         proj = project_points(r.landmarks, K)
-        n = min(proj.shape[1], lmk.shape[1])
-        ok = torch.isfinite(lmk[:, :n]).all(-1)
-        diff = (proj[:, :n] - torch.nan_to_num(lmk[:, :n])).abs().sum(-1)
-        out["landmarks"] = config.w_landmarks * (diff * ok).sum() / ok.sum().clamp(min=1) / res * 10
-        if config.w_eyelids > 0 and n == 478:
+        out["landmarks"] = config.w_landmarks * landmark_term(proj, lmk) / res * 10
+        if config.w_eyelids > 0 and min(proj.shape[1], lmk.shape[1]) == 478:
             out["eyelids"] = config.w_eyelids * eyelid_term(proj, lmk) / res * 10
     out["silhouette"] = config.w_silhouette * ((r.coverage - gt_mask).abs() * area).mean()
     if semantic and r.face_region is not None:

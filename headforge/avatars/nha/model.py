@@ -17,7 +17,7 @@ from torch import nn
 from headforge.avatars.base import Avatar, AvatarRender, Geometry
 from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.errors import HeadforgeError
-from headforge.head.landmarks import EYELID_PAIRS, FACE_OVAL_LOOP
+from headforge.head.landmarks import FACE_OVAL_LOOP
 from headforge.head.lbs import pose_to_rotmats, surface_points
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FRAME_KEYS, head_to_camera
@@ -30,8 +30,6 @@ from headforge.render.matte import soft_matte
 from headforge.render.shading import constant_sh, sh_shading
 
 LIP_PAIRS = tuple(map(tuple, MOUTH_PAIRS.tolist()))  # MediaPipe inner-lip pairs: the mouth opening
-# MediaPipe upper/lower eyelid pairs (subject's right eye, then left): the eye opening
-EYELID_UPPER, EYELID_LOWER = EYELID_PAIRS[:, 0].tolist(), EYELID_PAIRS[:, 1].tolist()
 # Laplacian weights per region (NHA App. Table 3 in spirit: stiff face and eyes, free scalp); the
 # scalp's weight is NHAConfig.laplacian_scalp.
 LAPLACIAN_WEIGHTS = {"neck": 1.0, "ears": 5.0, "face": 20.0, "lips": 20.0, "eyelids": 20.0,
