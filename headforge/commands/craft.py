@@ -88,18 +88,23 @@ def train(maps: Path = typer.Argument(..., help="map folder: headforge craft reg
           holdout: float = typer.Option(0.2, help="fraction of identities held out of training"),
           steps: int | None = typer.Option(None, help="training steps (default: the preset's)"),
           seed: int = typer.Option(0, help="random seed (split and initialisation)"),
-          settings: list[str] = typer.Option([], "--set", help="FIELD=VALUE config override, e.g. resolution=32")) -> None:
+          settings: list[str] = typer.Option([], "--set", help="FIELD=VALUE config override, e.g. resolution=32"),
+          device: str = typer.Option("cpu", help="cpu, cuda[:N] or auto (the paper preset wants a GPU)")) -> None:
     """Train HeadCraft's generative model (and baselines) over displacement maps. Under
     ``torchrun --nproc-per-node N`` the processes share each batch (gloo, on the CPU)."""
     from headforge import distributed
     from headforge.craft.generative import train as T
+    from headforge.devices import resolve_device
 
     try:
+        target = resolve_device(device)
+        if distributed.launched() and target.type != "cpu":
+            raise HeadforgeError("craft train under torchrun trains on the CPU (gloo): drop --device or run one process")
         methods = list(T.METHODS) if model == "all" else [model]
         for m in methods:
             T.config_class(m)
         opts = T.TrainOptions(preset=preset, holdout=holdout, seed=seed, steps=steps,
-                              settings=T.parse_settings(settings, methods))
+                              settings=T.parse_settings(settings, methods), device=str(target))
         distributed.init_from_environment("cpu")  # under torchrun: join the group (gloo); else nothing
         if distributed.active() and "vqvae" in methods:
             raise HeadforgeError("vqvae trains on one process only (its codebook's running averages are per process): "

@@ -221,7 +221,7 @@ class Generator(nn.Module):
         ws = w[:, None].repeat(1, self.num_ws, 1)
         if mixing > 0 and torch.rand(()) < mixing:
             cut = int(torch.randint(1, self.num_ws, ()))
-            ws[:, cut:] = self.mapping(torch.randn_like(z))[:, None]
+            ws[:, cut:] = self.mapping(torch.randn(z.shape).to(z))[:, None]  # CPU RNG: the same draws on any device
         if truncation != 1.0:
             ws = self.mapping.w_avg.lerp(ws, truncation)
         return ws
@@ -301,7 +301,7 @@ class StyleGAN2Trainer:
         return {"pl_mean": self.pl_mean.reshape(1)}
 
     def load_extra_state(self, state: dict[str, torch.Tensor]) -> None:
-        self.pl_mean = state["pl_mean"].reshape(())
+        self.pl_mean = state["pl_mean"].reshape(()).to(self.G.const.device)
 
     def train_step(self, real: torch.Tensor) -> dict[str, float]:
         """One D and one G step on the global batch ``real`` (B, C, R, R).
@@ -314,7 +314,7 @@ class StyleGAN2Trainer:
         The mapping network runs on the whole batch on every rank (cheap; ``w_avg`` stays the
         single process's); the path-length mean is averaged over the ranks."""
         cfg, G, D = self.cfg, self.G, self.D
-        B = real.shape[0]
+        B, dev = real.shape[0], real.device  # latents drawn on the CPU's RNG, then moved: one stream on any device
         world = distributed.world_size()
         if B % world:
             raise HeadforgeError(f"batch {B} cannot be split over {world} processes: --set batch=N with N a multiple of {world}")
@@ -323,7 +323,7 @@ class StyleGAN2Trainer:
         D.requires_grad_(True)
         G.requires_grad_(False)
         with torch.no_grad():
-            fake = G.synthesis(_mine(G.ws(torch.randn(B, cfg.z_dim), mixing=cfg.style_mixing)))
+            fake = G.synthesis(_mine(G.ws(torch.randn(B, cfg.z_dim).to(dev), mixing=cfg.style_mixing)))
         real = _mine(real)
         loss_d = F.softplus(D(fake)).mean() + F.softplus(-D(real)).mean()
         if self.step % cfg.r1_interval == 0:
@@ -340,18 +340,18 @@ class StyleGAN2Trainer:
         # --- G: non-saturating loss (+ lazy path-length)
         D.requires_grad_(False)
         G.requires_grad_(True)
-        ws = G.ws(torch.randn(B, cfg.z_dim), mixing=cfg.style_mixing, update_avg=True)
+        ws = G.ws(torch.randn(B, cfg.z_dim).to(dev), mixing=cfg.style_mixing, update_avg=True)
         loss_g = F.softplus(-D(G.synthesis(_mine(ws)))).mean()
         if cfg.pl_weight > 0 and self.step % cfg.pl_interval == 0:
             pb = world * max(1, B // world // 2)  # half of each share (one process: max(1, B // 2))
-            ws_pl = G.ws(_mine(torch.randn(pb, cfg.z_dim)))
+            ws_pl = G.ws(_mine(torch.randn(pb, cfg.z_dim)).to(dev))
             img = G.synthesis(ws_pl)
             R = cfg.resolution
-            noise = _mine(torch.randn(pb, img.shape[1], R, R)) / math.sqrt(R * R)
+            noise = _mine(torch.randn(pb, img.shape[1], R, R)).to(dev) / math.sqrt(R * R)
             (gw,) = torch.autograd.grad((img * noise).sum(), ws_pl, create_graph=True)
             lengths = gw.square().sum(2).mean(1).sqrt()
             mean_length = distributed.mean_terms({"l": lengths.mean().detach()})["l"]
-            self.pl_mean = self.pl_mean.lerp(mean_length, cfg.pl_decay)
+            self.pl_mean = self.pl_mean.to(mean_length).lerp(mean_length, cfg.pl_decay)
             pl = (lengths - self.pl_mean).square().mean()
             loss_g = loss_g + pl * cfg.pl_weight * cfg.pl_interval
             terms["pl"] = pl.detach()

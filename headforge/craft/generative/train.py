@@ -14,6 +14,10 @@ Methods: ``stylegan2``, ``vae``, ``vqvae``, ``pca`` (and the bare head model, wh
 nothing to train). Everything is written to a temp name and renamed; a killed run resumes from
 its last checkpoint when the same command is run again.
 
+On a GPU (``--device cuda``) the modules and the training maps live on the device; every random
+draw (batches, latents, noise) still comes from the CPU's seeded generators, so a run draws the same
+numbers on either device and a checkpoint written on one resumes on the other.
+
 Over processes (``torchrun``, :mod:`headforge.distributed`, gloo: training runs on the CPU):
 every rank draws the same global batches (the same seeded generators), trains on its share
 with the gradients averaged before each optimiser step (StyleGAN2, the VAE); PCA is fitted
@@ -151,6 +155,23 @@ def read_run(run: str | Path) -> dict:
     return meta
 
 
+def trainer_device(trainer) -> torch.device:
+    """The device a trainer's modules live on (its first module's first tensor)."""
+    for module in trainer.modules().values():
+        for t in module.state_dict().values():
+            return t.device
+    return torch.device("cpu")
+
+
+def move(trainer, device: torch.device | str) -> None:
+    """Put a trainer's modules and extra state on ``device``; its optimizers follow (their
+    state is created lazily, or cast to the parameters' device when a checkpoint is loaded)."""
+    for module in trainer.modules().values():
+        module.to(device)
+    if hasattr(trainer, "extra_state"):
+        trainer.load_extra_state({k: v.to(device) for k, v in trainer.extra_state().items()})
+
+
 def save_checkpoint(folder: Path, method: str, trainer, resolution: int, seconds: float, done: bool) -> None:
     from safetensors.torch import save_file
 
@@ -158,9 +179,9 @@ def save_checkpoint(folder: Path, method: str, trainer, resolution: int, seconds
     tensors = {}
     for name, module in trainer.modules().items():
         for k, v in module.state_dict().items():
-            tensors[f"{name}.{k}"] = v.detach().contiguous().clone()
+            tensors[f"{name}.{k}"] = v.detach().cpu().contiguous().clone()
     if hasattr(trainer, "extra_state"):
-        tensors.update({f"extra.{k}": v.contiguous() for k, v in trainer.extra_state().items()})
+        tensors.update({f"extra.{k}": v.detach().cpu().contiguous() for k, v in trainer.extra_state().items()})
     _atomic_write(folder / "checkpoint.safetensors", lambda p: save_file(tensors, str(p)))
     opts = {k: o.state_dict() for k, o in trainer.optimizers().items()}
     if opts:
@@ -197,7 +218,7 @@ def load_checkpoint(folder: Path, method: str, trainer, resolution: int, optimiz
     if meta.get("images") is not None:
         trainer.images = int(meta["images"])
     if optimizers and (folder / "optimizer.pt").is_file():
-        state = torch.load(str(folder / "optimizer.pt"), weights_only=False)
+        state = torch.load(str(folder / "optimizer.pt"), weights_only=False, map_location="cpu")  # any device's
         for k, opt in trainer.optimizers().items():
             opt.load_state_dict(state["optimizers"][k])
         torch.set_rng_state(state["rng"])
@@ -214,6 +235,7 @@ class TrainOptions:
     head_model: str | None = None
     settings: dict | None = None  # config fields (--set FIELD=VALUE)
     threads: int = 1  # torch threads while training (set after every import: some reset it)
+    device: str = "cpu"  # the device the modules train on (resolved by the caller)
 
 
 def prepare_run(maps_folder: str | Path, run: str | Path, methods: list[str], options: TrainOptions, log=print) -> dict:
@@ -301,13 +323,15 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
     folder = run / method
     face = D.face_texels(meta["head_model"], meta["levels"], cfg.resolution)
     trainer = build(method, cfg, face, options.seed)
-    maps = train_maps(run)
+    move(trainer, options.device)  # before any checkpoint is loaded: Adam casts its state to the parameters' device
+    maps = train_maps(run).to(options.device)
     # one thread: on the shared 2-core host two threads ran a StyleGAN2 step 10x slower
     # (13-20 s against 1.3 s), and importing the registration stack had reset the count to 2
     torch.set_num_threads(max(1, options.threads))
     seconds = 0.0
     if (folder / "checkpoint.json").is_file():
         ck = load_checkpoint(folder, method, trainer, cfg.resolution)
+        move(trainer, options.device)  # the extra state was read onto the CPU
         seconds = float(ck.get("seconds", 0.0))
         if ck.get("done") and trainer.step >= cfg.steps:
             if main:
@@ -347,7 +371,7 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
                     if method == "vqvae" and not last:
                         with torch.no_grad():
                             trainer.model.eval()
-                            grid = trainer.model(maps[:16])[0]  # reconstructions until the prior exists
+                            grid = trainer.model(maps[:16])[0].cpu()  # reconstructions until the prior exists
                     elif method != "vqvae":
                         grid = sample_latents(method, trainer, 16, 1.0, fixed_z.manual_seed(1234))
                     else:
@@ -392,9 +416,10 @@ def sample_latents(method: str, trainer, n: int, truncation: float, generator: t
     decoding."""
     with torch.no_grad():
         if method == "vqvae":
-            return trainer.sample(n, truncation, generator)
+            return trainer.sample(n, truncation, generator).cpu()
         if z is None:
             z = torch.randn(n, latent_dim(method, trainer), generator=generator)
+        z = z.to(trainer_device(trainer))
         out = []
         for k in range(0, len(z), 16):
             if method == "stylegan2":
@@ -402,7 +427,7 @@ def sample_latents(method: str, trainer, n: int, truncation: float, generator: t
             else:
                 trainer.model.eval()
                 out.append(trainer.model.sample(z[k:k + 16], truncation))
-        return torch.cat(out)
+        return torch.cat(out).cpu()
 
 
 def load_trained(run: str | Path, method: str):

@@ -102,7 +102,7 @@ class VAE(nn.Module):
     def forward(self, x: torch.Tensor):
         h = self.enc(x).flatten(1)
         mu, logvar = self.mu(h), self.logvar(h).clamp(-10, 10)
-        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
+        z = mu + torch.randn(mu.shape).to(mu) * (0.5 * logvar).exp()  # CPU RNG: one stream on any device
         return self.decode(z), mu, logvar
 
     def latent_dim(self) -> int:

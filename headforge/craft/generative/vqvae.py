@@ -127,7 +127,7 @@ class PixelCNN(nn.Module):
     @torch.no_grad()
     def sample(self, n: int, h: int, w: int, temperature: float = 1.0, generator: torch.Generator | None = None) -> torch.Tensor:
         """(n, h, w) codes, raster order; temperature 0 takes the most likely code (greedy)."""
-        idx = torch.zeros(n, h, w, dtype=torch.long)
+        idx = torch.zeros(n, h, w, dtype=torch.long, device=self.embed.weight.device)
         for i in range(h):
             for j in range(w):
                 logits = self(idx)[:, :, i, j]
@@ -135,7 +135,7 @@ class PixelCNN(nn.Module):
                     idx[:, i, j] = logits.argmax(1)
                 else:
                     p = torch.softmax(logits / temperature, 1)
-                    idx[:, i, j] = torch.multinomial(p, 1, generator=generator)[:, 0]
+                    idx[:, i, j] = torch.multinomial(p.cpu(), 1, generator=generator)[:, 0].to(idx)  # a CPU generator
         return idx
 
 
@@ -175,7 +175,7 @@ class VQVAETrainer:
         codes = torch.cat([self.model.codes(maps[i:i + 16]) for i in range(0, len(maps), 16)])
         nll = float("nan")
         for epoch in range(self.cfg.prior_epochs):
-            perm = torch.randperm(len(codes))
+            perm = torch.randperm(len(codes)).to(codes.device)
             total = 0.0
             for k in range(0, len(codes), self.cfg.prior_batch):
                 batch = codes[perm[k:k + self.cfg.prior_batch]]
