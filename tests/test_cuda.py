@@ -135,3 +135,123 @@ def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tm
     on_gpu = score(r.method, avatar, copy.deepcopy(val).to("cuda"), config)[0]
     on_cpu = score(r.method, avatar.cpu(), val, config)[0]
     assert abs(on_gpu["psnr"] - on_cpu["psnr"]) < 0.05, (on_gpu, on_cpu)
+
+
+@pytest.fixture(scope="module")
+def point_config():
+    """A small PointAvatar (float64 in the energy test) with the quick preset's terms on."""
+    from headforge.avatars.pointavatar.config import PointAvatarConfig
+
+    return PointAvatarConfig(resolution=128, iterations=8, init_points=1500, max_points=3000, init_cloud="head",
+                             upsample_every=3, prune_every=2, canonical_width=64, canonical_layers=4,
+                             canonical_skip=2, frequencies=4, deformer_width=64, deformer_layers=3, shading_width=32,
+                             eikonal_samples=500, val_every=8, checkpoint_every=2, val_frames=2, tto_steps=2,
+                             tto_photometric_steps=0, val_tto_steps=1, points_per_pixel=6, w_landmarks=1.0,
+                             w_eyelids=1.0)
+
+
+def test_pointavatar_energies_and_gradients_on_cuda_match_the_cpu(dataset, point_config):
+    """The same float64 avatar and batch on both devices: every energy and every parameter's
+    gradient agree (splatting visibility may differ on a few boundary pixels, hence not bit for bit)."""
+    from headforge.avatars import registry
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+
+    torch.manual_seed(0)
+    method = registry.get("pointavatar")
+    assets = RunAssets.from_dataset(dataset)
+    avatar = method.build(assets, point_config).double()
+    data = FrameData(dataset, "train", point_config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    on_gpu = copy.deepcopy(avatar).cuda()
+    data_gpu = copy.deepcopy(data).to("cuda")
+    batch, batch_gpu = data.batch(torch.tensor([0, 1])), data_gpu.batch(torch.tensor([0, 1]))
+    batch = {k: v.double() if torch.is_floating_point(v) else v for k, v in batch.items()}
+    batch_gpu = {k: v.double() if torch.is_floating_point(v) else v for k, v in batch_gpu.items()}
+    for stage in ("train", "align"):
+        cpu_terms = method.losses(avatar, batch, data.K.double(), point_config, stage)
+        gpu_terms = method.losses(on_gpu, batch_gpu, data_gpu.K.double(), point_config, stage)
+        assert cpu_terms.keys() == gpu_terms.keys() and {"rgb", "landmarks"} <= cpu_terms.keys()
+        for k in cpu_terms:
+            assert gpu_terms[k].is_cuda
+            assert torch.allclose(gpu_terms[k].cpu(), cpu_terms[k], rtol=1e-3, atol=1e-7), (stage, k, cpu_terms[k], gpu_terms[k])
+    avatar.zero_grad()
+    on_gpu.zero_grad()
+    sum(cpu_terms.values()).backward()
+    sum(gpu_terms.values()).backward()
+    compared = 0
+    for (name, p), q in zip(avatar.named_parameters(), on_gpu.parameters()):
+        if p.grad is None or p.grad.abs().max() == 0:
+            assert q.grad is None or q.grad.abs().max() < 1e-9, name
+            continue
+        err = (q.grad.cpu() - p.grad).norm() / p.grad.norm()
+        assert err < 1e-2, (name, float(err))
+        compared += 1
+    assert compared > 0
+
+
+def test_pointavatar_fits_on_cuda_and_resumes_on_the_cpu(dataset, point_config, tmp_path, interrupt_after):
+    """A PointAvatar run trains and scores on the GPU end to end (novel views included); one killed
+    on the GPU (after a prune and a doubling) resumes on the CPU; the finished avatar scores the same
+    held-out PSNR on either device and moves between them (its cached canonical state follows), relit
+    renders too."""
+    from headforge.avatars.engine import fit, score
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.run import load_run
+    from headforge.metrics.protocol import TrackedHead
+    from headforge.render.camera import Cameras
+
+    whole = fit("pointavatar", dataset, tmp_path / "gpu", point_config, log=lambda m: None, device="cuda")
+    assert whole["device"] == "cuda" and 5 < whole["val_psnr"] < 60
+    if (dataset / "gt" / "views").is_dir():  # a synth subject: its novel views are scored on the GPU too
+        assert any(k.startswith("novel_yaw") for k in whole), sorted(whole)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        fit("pointavatar", dataset, run, point_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
+    state = json.loads((run / "state.json").read_text())
+    assert state["iteration"] == 4 and [row[0] for row in state["points"]] == [2, 3, 4]
+    metrics = fit("pointavatar", dataset, run, point_config, log=lambda m: None, device="cpu")
+    assert metrics["device"] == "cpu" and 5 < metrics["val_psnr"] < 60
+    r = load_run(run, "cuda")
+    avatar, config = r.avatar, r.config
+    assert next(avatar.parameters()).is_cuda
+    val = FrameData(dataset, "val", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
+    on_gpu = score(r.method, avatar, copy.deepcopy(val).to("cuda"), config)[0]
+    cams = Cameras.at_origin(val.K.cuda(), 1, config.resolution)
+    params = {k: v[:1] for k, v in avatar.frame_params(torch.tensor([0])).items()}
+    with torch.no_grad():
+        relit_gpu = avatar.render(params, cams, light={"direction": torch.tensor([0.0, 0.5, 1.0])}).rgb.cpu()
+    avatar = avatar.cpu()
+    on_cpu = score(r.method, avatar, val, config)[0]
+    assert abs(on_gpu["psnr"] - on_cpu["psnr"]) < 0.05, (on_gpu, on_cpu)
+    params = {k: v[:1] for k, v in avatar.frame_params(torch.tensor([0])).items()}
+    with torch.no_grad():
+        relit_cpu = avatar.render(params, Cameras.at_origin(val.K, 1, config.resolution),
+                                  light={"direction": torch.tensor([0.0, 0.5, 1.0])}).rgb
+    assert (relit_gpu - relit_cpu).abs().mean() < 1e-3
+
+
+def test_headcraft_trains_on_cuda_draws_the_cpus_numbers_and_resumes_on_the_cpu(tmp_path):
+    """Every model of ``craft train`` runs on the GPU; StyleGAN2 draws its latents from the CPU's
+    generator, so its first losses on either device agree; a GPU checkpoint resumes on the CPU."""
+    from test_craft_generative import TINY, cli, write_map_folder
+
+    from headforge.craft.generative import train as T
+    from headforge.craft.pipeline import template_for
+
+    maps = write_map_folder(tmp_path / "maps", template_for("open-head", 1), ["id000", "id001", "id002", "id003", "id004"])
+    for device in ("cuda", "cpu"):
+        r = cli("craft", "train", maps, "-o", tmp_path / device, "--model", "stylegan2", "--steps", 1, "--device",
+                device, *TINY)
+        assert r.exit_code == 0, r.output
+    first = {d: json.loads((tmp_path / d / "run.json").read_text())["methods"]["stylegan2"]["last_losses"]
+             for d in ("cuda", "cpu")}
+    for k in first["cpu"]:
+        assert first["cuda"][k] == pytest.approx(first["cpu"][k], rel=2e-2, abs=1e-4), (k, first)
+    r = cli("craft", "train", maps, "-o", tmp_path / "all", "--model", "all", "--steps", 3, "--device", "cuda", *TINY)
+    assert r.exit_code == 0, r.output
+    r = cli("craft", "train", maps, "-o", tmp_path / "all", "--model", "stylegan2", "--steps", 5, "--device", "cpu", *TINY)
+    assert r.exit_code == 0 and "resuming at step 3" in r.output, r.output
+    trainer, _ = T.load_trained(tmp_path / "all", "vqvae")
+    T.move(trainer, "cuda")
+    assert T.sample_latents("vqvae", trainer, 2, 1.0, torch.Generator().manual_seed(0)).device.type == "cpu"

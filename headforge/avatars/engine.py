@@ -406,16 +406,18 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
             continue
         R = torch.tensor(flip @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip, dtype=torch.float32)
         t = centre - R @ centre
+        R, t = R.to(data.K.device), t.to(data.K.device)  # the cameras on the frames' device
         per_frame = {}
         for chunk in range(0, len(rows), config.batch):
             sel = torch.tensor(rows[chunk:chunk + config.batch])
             rgba = [np.asarray(Image.open(p).resize((config.resolution,) * 2, Image.BILINEAR), np.float32) / 255
                     for p in files[chunk:chunk + config.batch]]
-            rgba = torch.from_numpy(np.stack(rgba))
+            rgba = torch.from_numpy(np.stack(rgba)).to(data.K.device)
             B = len(sel)
             cams = Cameras(data.K.expand(B, 3, 3), R.expand(B, 3, 3), t.expand(B, 3), config.resolution, config.resolution)
-            params = avatar.frame_params(data.index[sel])
-            region, face = head.regions({k: v[data.index[sel]] for k, v in tracked.items()}, cams)
+            frames = data.index[sel.to(data.index.device)]
+            params = avatar.frame_params(frames)
+            region, face = head.regions({k: v[frames.cpu()] for k, v in tracked.items()}, cams)  # tracked: on the CPU
             r = method.render_for_scoring(avatar, params, cams)
             s = score_frames(r.rgb, r.coverage, rgba[..., :3], rgba[..., 3], region, face, landmarks=False)
             for k, v in s.items():

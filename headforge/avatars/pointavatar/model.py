@@ -163,7 +163,9 @@ class PointAvatarModel(Avatar):
         # cacheable when nothing upstream needs gradients: rendering, and per-frame fitting, where
         # only the frame parameters train (the canonical state is then the same every step)
         frozen = not training and not (torch.is_grad_enabled() and any(p.requires_grad for p in own))
-        key = (self.n_points, self.jacobian_normals, tuple(p._version for p in own))
+        # the device and dtype too: a move (.cuda(), .cpu(), .double()) must not serve the old device's state
+        key = (self.n_points, self.jacobian_normals, self.points.device, self.points.dtype,
+               tuple(p._version for p in own))
         if frozen and self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         q = self.points

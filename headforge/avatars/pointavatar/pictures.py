@@ -21,12 +21,13 @@ def canonical_sheet(avatar: PointAvatarModel, K: torch.Tensor, resolution: int) 
     the canonical cloud (the head model's canonical pose x_o), 0.6 m in front of ``K``."""
     c = avatar.canonical(False)
     x_o = c.q * SCALE + avatar.centre + c.O
+    K = K.to(x_o)  # the avatar's device
     n = torch.nn.functional.normalize(c.grad, dim=-1)
     shading = avatar.shading_net(n) if avatar.shading_net is not None else torch.ones_like(n) * 0.5
     rows = []
     for yaw in (0.0, 90.0):
         a = math.radians(yaw)
-        R = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+        R = x_o.new_tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
         p = (x_o - avatar.centre) @ R.T * x_o.new_tensor(FLIP) + x_o.new_tensor([0.0, 0.0, 0.6])
         cams = Cameras.at_origin(K[None], 1, resolution)
         radius = K[0, 0] * avatar.radius / p[:, 2].clamp(min=1e-3)
@@ -46,7 +47,7 @@ def write_pictures(avatar: PointAvatarModel, train, config, state: dict, run: Pa
 
     from headforge.render.io import write_png
 
-    write_png(run / "canonical_points.png", canonical_sheet(avatar, train.K.cpu(), config.resolution).cpu())
+    write_png(run / "canonical_points.png", canonical_sheet(avatar, train.K, config.resolution).cpu())
     history = np.array(state.get("points", []), dtype=float).reshape(-1, 3)
     fig, ax = plt.subplots(figsize=(5, 3.2))
     steps = np.concatenate([[0], history[:, 0]])
