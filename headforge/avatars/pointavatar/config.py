@@ -62,6 +62,12 @@ class PointAvatarConfig(EngineConfig):
     # beyond the paper (paper preset: 0): with --supervision gt, an L1 of the splatted normals
     # against the subject's GT normal maps, as NHA's quick preset (docs/pointavatar.md)
     w_normal_abs: float = 1.0
+    # beyond the paper, off in both presets (the paper's frame fitting is RGB only): in the frame
+    # fitting, the head model's landmarks at the frame's parameters (less the avatar's landmark
+    # bias) against the detections (L1, px x 10 / resolution) and the eye opening, as NHA's; on
+    # talking_bun they cost 4 dB of held-out PSNR (docs/pointavatar.md, deviation 13)
+    w_landmarks: float = 0.0
+    w_eyelids: float = 0.0
 
     @classmethod
     def quick(cls) -> "PointAvatarConfig":

@@ -8,7 +8,9 @@ blendshapes, pose correctives and skinning weights against the nearest canonical
 vertex's), the SDF data term at the points and the Eikonal term at the points and perturbed
 copies; with ``--supervision gt`` (beyond the paper) an L1 of the splatted normals against the
 GT normal maps. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
-as the paper's test-time tracking does.
+as the paper's test-time tracking does; with ``w_landmarks`` / ``w_eyelids`` > 0 (an option beyond
+the paper, off in both presets: measured worse, docs/pointavatar.md) the fitting also pulls the head
+model's landmarks, less the avatar's landmark bias, to the detections.
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.pointavatar.config import PointAvatarConfig
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
-from headforge.avatars.supervision import normal_abs_term
+from headforge.avatars.supervision import eyelid_term, landmark_term, normal_abs_term
 from headforge.metrics.protocol import matte_on_white
-from headforge.render.camera import Cameras
+from headforge.render.camera import Cameras, project_points
 
 
 def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> torch.Tensor:
@@ -51,6 +53,44 @@ def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: to
     return (g.norm(dim=-1) - 1).pow(2).mean()
 
 
+def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tensor, K: torch.Tensor,
+                   config: PointAvatarConfig) -> dict[str, torch.Tensor]:
+    """The head model's landmarks at the frame parameters, less the avatar's ``landmark_bias``,
+    against ``detected`` (B, L, 2) pixels, and the eye opening (NHA's terms,
+    :mod:`headforge.avatars.supervision`): they steer the frame parameters only (the head model's
+    landmarks do not depend on the networks). The bias is the offset the trained avatar's frames
+    hold on the training frames (:func:`landmark_bias`): the points are not the head model, and a
+    frame pulled onto the bare model's landmark fit leaves the avatar's own features behind."""
+    lmk = avatar.landmarks(params)
+    if lmk is None:
+        return {}
+    proj, res = project_points(lmk, K), config.resolution
+    n = min(proj.shape[1], avatar.landmark_bias.shape[0])
+    proj = proj[:, :n] - avatar.landmark_bias[:n]
+    out = {"landmarks": config.w_landmarks * landmark_term(proj, detected) / res * 10}
+    if config.w_eyelids > 0 and min(proj.shape[1], detected.shape[1]) == 478:
+        out["eyelids"] = config.w_eyelids * eyelid_term(proj, detected) / res * 10
+    return out
+
+
+@torch.no_grad()
+def landmark_bias(avatar: PointAvatarModel, data, config: PointAvatarConfig) -> torch.Tensor:
+    """(L, 2) pixels: per landmark, the median over ``data``'s frames (the training frames) of the
+    head model's projected landmarks at the avatar's frame parameters minus the detections."""
+    offsets = []
+    for rows in torch.arange(len(data)).split(64):
+        batch = data.batch(rows)
+        lmk = avatar.landmarks(avatar.frame_params(batch["index"]))
+        n = min(lmk.shape[1], batch["landmarks"].shape[1])
+        offsets.append(project_points(lmk, data.K)[:, :n] - batch["landmarks"][:, :n])
+    bias = torch.cat(offsets).nanmedian(0).values
+    return torch.nan_to_num(bias).to(avatar.landmark_bias)
+
+
+def uses_landmarks(config: PointAvatarConfig) -> bool:
+    return config.w_landmarks > 0 or config.w_eyelids > 0
+
+
 def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: PointAvatarConfig, stage: str,
            params: dict | None = None) -> dict[str, torch.Tensor]:
     from headforge.metrics.image import ssim
@@ -67,7 +107,9 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
     w = region[..., None].float()
     target = matte_on_white(batch["image"], batch["mask"])
     out = {"rgb": config.w_rgb * ((r.rgb - target).abs() * w).sum() / w.sum().clamp(min=1) / 3}
-    if not training:
+    if not training:  # the frame fitting (test-time and alignment): beyond the paper, its landmark terms
+        if uses_landmarks(config):
+            out |= landmark_terms(avatar, params, batch["landmarks"], K, config)
         return out
     with torch.no_grad():
         avatar.visible |= (r.max_weight > 0.5).any(0)
@@ -125,11 +167,15 @@ class PointAvatarMethod(Method):
             changed = True
         if changed:
             ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])
+        if uses_landmarks(config) and it % config.val_every == 0:  # the validation's fitting uses it next
+            avatar.landmark_bias.copy_(landmark_bias(avatar, ctx.train, config))
         return changed
 
     def after_training(self, ctx) -> dict:
         from headforge.avatars.pointavatar.pictures import write_pictures
 
+        if uses_landmarks(ctx.config):  # before the held-out frames are fitted
+            ctx.avatar.landmark_bias.copy_(landmark_bias(ctx.avatar, ctx.train, ctx.config))
         write_pictures(ctx.avatar, ctx.train, ctx.config, ctx.state, ctx.run)
         return {"n_points": ctx.avatar.n_points, "point_radius_mm": round(1000 * float(ctx.avatar.radius), 3)}
 

@@ -121,6 +121,9 @@ class PointAvatarModel(Avatar):
         self.register_buffer("radius", torch.tensor(radius))  # world metres
         self.register_buffer("visible", torch.zeros(config.init_points, dtype=torch.bool))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))  # seeds the Eikonal samples: exact resume
+        # (L, 2) pixels: where the head model's projected landmarks sit against the detections on the
+        # training frames the avatar was trained at (method.landmark_bias); the fitting terms subtract it
+        self.register_buffer("landmark_bias", torch.zeros(len(data.landmark_faces), 2))
         self._cache: tuple | None = None
         self._vertex_tree = None  # the canonical vertices' k-d tree (nearest_canonical_vertices)
 
@@ -262,6 +265,13 @@ class PointAvatarModel(Avatar):
             shading = sh_shading(normals, light["sh"].to(normals)).clamp(min=0)
         return (albedo * shading).clamp(0, 1), shading
 
+    def landmarks(self, params: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """(B, L, 3) camera-space landmarks of the head model at the frame parameters ``params``
+        (the head model's own deformation, not the points'); None for a model without any."""
+        B = params["translation"].shape[0]
+        out = self.head(shape=self.shape.expand(B, -1), **{k: params[k] for k in FRAME_KEYS if k != "translation"})
+        return None if out.landmarks is None else head_to_camera(out.landmarks, params["translation"])
+
     # ---- rendering --------------------------------------------------------------------------
     def posed(self, params: dict[str, torch.Tensor], training: bool = False):
         """(canonical state, camera-space points (B, N, 3), camera-space normals (B, N, 3),
@@ -340,6 +350,7 @@ class PointAvatarModel(Avatar):
         device = self.points.device
         self.points = nn.Parameter(torch.zeros(n, 3, device=device))
         self.visible = torch.zeros(n, dtype=torch.bool, device=device)
+        state = {"landmark_bias": torch.zeros_like(self.landmark_bias)} | state  # runs from before 2026-12-04
         self.load_state_dict(state)
         self._cache = None
 
