@@ -36,14 +36,14 @@ def main() -> None:
     config = r.config
     for assignment in args.set:
         config.override(assignment)
-    val = FrameData(args.dataset, "val", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
+    head = TrackedHead(r.assets.head_data(), r.assets.tracking["shape"])
+    val = FrameData(args.dataset, "val", config.resolution, head)
     if r.method.name == "pointavatar":
         from headforge.avatars.pointavatar.method import landmark_bias, uses_landmarks
 
         if uses_landmarks(config):
-            train = FrameData(args.dataset, "train", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
-            r.avatar.landmark_bias.copy_(landmark_bias(r.avatar, train, config))
-    tracked = r.method.build(r.assets, config).frames  # the frames as the run started: the tracking's
+            r.avatar.landmark_bias.copy_(landmark_bias(r.avatar, FrameData(args.dataset, "train", config.resolution, head)))
+    tracked = r.avatar.params_from_tracking(r.assets.tracking)  # the frames as the run started
     with torch.no_grad():
         for k in r.avatar.frames:
             r.avatar.frames[k][val.index] = tracked[k][val.index]

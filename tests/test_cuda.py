@@ -115,25 +115,34 @@ def test_nha_energies_and_gradients_on_cuda_match_the_cpu(dataset, tiny_config):
         assert err < 2e-2, (name, float(err))
 
 
-def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path, interrupt_after):
+def kill_on_gpu_resume_on_cpu(method: str, dataset: Path, run: Path, config, interrupt_after):
+    """Kill a ``method`` fit on the GPU after 4 iterations and finish it on the CPU; returns the
+    interrupted run's state.json, the finished run loaded onto the GPU, its held-out frames (on
+    the CPU) and their score on the GPU."""
     from headforge.avatars.engine import fit, score
     from headforge.avatars.frames import FrameData
     from headforge.avatars.run import load_run
     from headforge.metrics.protocol import TrackedHead
 
-    run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        fit("nha", dataset, run, tiny_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
+        fit(method, dataset, run, config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
     state = json.loads((run / "state.json").read_text())
-    assert state["iteration"] == 4 and state["aligned"] > 0
-    metrics = fit("nha", dataset, run, tiny_config, log=lambda m: None, device="cpu")
+    assert state["iteration"] == 4
+    metrics = fit(method, dataset, run, config, log=lambda m: None, device="cpu")
     assert metrics["device"] == "cpu" and 5 < metrics["val_psnr"] < 60
     r = load_run(run, "cuda")
-    avatar, config = r.avatar, r.config
-    assert next(avatar.parameters()).is_cuda
-    val = FrameData(dataset, "val", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
-    on_gpu = score(r.method, avatar, copy.deepcopy(val).to("cuda"), config)[0]
-    on_cpu = score(r.method, avatar.cpu(), val, config)[0]
+    assert next(r.avatar.parameters()).is_cuda
+    val = FrameData(dataset, "val", r.config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
+    on_gpu = score(r.method, r.avatar, copy.deepcopy(val).to("cuda"), r.config)[0]
+    return state, r, val, on_gpu
+
+
+def test_fit_on_cuda_checkpoints_and_resumes_on_the_cpu(dataset, tiny_config, tmp_path, interrupt_after):
+    from headforge.avatars.engine import score
+
+    state, r, val, on_gpu = kill_on_gpu_resume_on_cpu("nha", dataset, tmp_path / "run", tiny_config, interrupt_after)
+    assert state["aligned"] > 0
+    on_cpu = score(r.method, r.avatar.cpu(), val, r.config)[0]
     assert abs(on_gpu["psnr"] - on_cpu["psnr"]) < 0.05, (on_gpu, on_cpu)
 
 
@@ -197,27 +206,16 @@ def test_pointavatar_fits_on_cuda_and_resumes_on_the_cpu(dataset, point_config, 
     held-out PSNR on either device and moves between them (its cached canonical state follows), relit
     renders too."""
     from headforge.avatars.engine import fit, score
-    from headforge.avatars.frames import FrameData
-    from headforge.avatars.run import load_run
-    from headforge.metrics.protocol import TrackedHead
     from headforge.render.camera import Cameras
 
     whole = fit("pointavatar", dataset, tmp_path / "gpu", point_config, log=lambda m: None, device="cuda")
     assert whole["device"] == "cuda" and 5 < whole["val_psnr"] < 60
     if (dataset / "gt" / "views").is_dir():  # a synth subject: its novel views are scored on the GPU too
         assert any(k.startswith("novel_yaw") for k in whole), sorted(whole)
-    run = tmp_path / "run"
-    with pytest.raises(KeyboardInterrupt):
-        fit("pointavatar", dataset, run, point_config, log=lambda m: None, progress=interrupt_after(5), device="cuda")
-    state = json.loads((run / "state.json").read_text())
-    assert state["iteration"] == 4 and [row[0] for row in state["points"]] == [2, 3, 4]
-    metrics = fit("pointavatar", dataset, run, point_config, log=lambda m: None, device="cpu")
-    assert metrics["device"] == "cpu" and 5 < metrics["val_psnr"] < 60
-    r = load_run(run, "cuda")
+    state, r, val, on_gpu = kill_on_gpu_resume_on_cpu("pointavatar", dataset, tmp_path / "run", point_config,
+                                                      interrupt_after)
+    assert [row[0] for row in state["points"]] == [2, 3, 4]
     avatar, config = r.avatar, r.config
-    assert next(avatar.parameters()).is_cuda
-    val = FrameData(dataset, "val", config.resolution, TrackedHead(r.assets.head_data(), r.assets.tracking["shape"]))
-    on_gpu = score(r.method, avatar, copy.deepcopy(val).to("cuda"), config)[0]
     cams = Cameras.at_origin(val.K.cuda(), 1, config.resolution)
     params = {k: v[:1] for k, v in avatar.frame_params(torch.tensor([0])).items()}
     with torch.no_grad():

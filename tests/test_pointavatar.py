@@ -319,7 +319,7 @@ def test_the_landmark_terms_steer_the_frame_fitting_to_the_detections_less_the_a
         # the dataset's detections are the model's own projections: shifted detections give that shift back
         shift = torch.tensor([1.5, -2.0])
         data.landmarks = data.landmarks + shift
-        bias = landmark_bias(avatar, data, config)
+        bias = landmark_bias(avatar, data)
         own = project_points(avatar.landmarks(avatar.frame_params(data.index)), data.K)
         expected = (own[:, :bias.shape[0]] - data.landmarks[:, :bias.shape[0]]).median(0).values
         assert torch.allclose(bias, expected, atol=1e-4) and torch.allclose(bias, -shift.expand_as(bias), atol=0.3)

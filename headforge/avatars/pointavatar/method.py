@@ -74,7 +74,7 @@ def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tenso
 
 
 @torch.no_grad()
-def landmark_bias(avatar: PointAvatarModel, data, config: PointAvatarConfig) -> torch.Tensor:
+def landmark_bias(avatar: PointAvatarModel, data) -> torch.Tensor:
     """(L, 2) pixels: per landmark, the median over ``data``'s frames (the training frames) of the
     head model's projected landmarks at the avatar's frame parameters minus the detections."""
     offsets = []
@@ -168,14 +168,14 @@ class PointAvatarMethod(Method):
         if changed:
             ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])
         if uses_landmarks(config) and it % config.val_every == 0:  # the validation's fitting uses it next
-            avatar.landmark_bias.copy_(landmark_bias(avatar, ctx.train, config))
+            avatar.landmark_bias.copy_(landmark_bias(avatar, ctx.train))
         return changed
 
     def after_training(self, ctx) -> dict:
         from headforge.avatars.pointavatar.pictures import write_pictures
 
         if uses_landmarks(ctx.config):  # before the held-out frames are fitted
-            ctx.avatar.landmark_bias.copy_(landmark_bias(ctx.avatar, ctx.train, ctx.config))
+            ctx.avatar.landmark_bias.copy_(landmark_bias(ctx.avatar, ctx.train))
         write_pictures(ctx.avatar, ctx.train, ctx.config, ctx.state, ctx.run)
         return {"n_points": ctx.avatar.n_points, "point_radius_mm": round(1000 * float(ctx.avatar.radius), 3)}
 

@@ -330,8 +330,7 @@ def train_method(run: str | Path, method: str, options: TrainOptions, log=print)
     torch.set_num_threads(max(1, options.threads))
     seconds = 0.0
     if (folder / "checkpoint.json").is_file():
-        ck = load_checkpoint(folder, method, trainer, cfg.resolution)
-        move(trainer, options.device)  # the extra state was read onto the CPU
+        ck = load_checkpoint(folder, method, trainer, cfg.resolution)  # extra state lands on the modules' device
         seconds = float(ck.get("seconds", 0.0))
         if ck.get("done") and trainer.step >= cfg.steps:
             if main:
