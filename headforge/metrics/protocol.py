@@ -76,7 +76,7 @@ def scoring_regions(vertices: torch.Tensor, faces: torch.Tensor, ring: torch.Ten
     return above | grown, face
 
 
-def _landmarks(images: torch.Tensor) -> np.ndarray:
+def image_landmarks(images: torch.Tensor) -> np.ndarray:
     """(B, 478, 2) MediaPipe landmarks of (B, H, W, 3) images, NaN where no face is found."""
     from headforge.head.landmarks import detect_mediapipe
 
@@ -88,7 +88,7 @@ def _landmarks(images: torch.Tensor) -> np.ndarray:
     return out
 
 
-def _openings(landmarks: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+def openings(landmarks: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(B,) mean distance (px) between the landmarks of each pair."""
     return np.linalg.norm(landmarks[:, pairs[:, 0]] - landmarks[:, pairs[:, 1]], axis=-1).mean(-1)
 
@@ -129,10 +129,10 @@ def score_frames(rgb: torch.Tensor, coverage: torch.Tensor, image: torch.Tensor,
         out["ms_ssim"] = np.array([ms_ssim(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)])
     out["cpbd"] = np.array([cpbd(pred[b].cpu().numpy()) for b in range(B)])
     if landmarks:
-        a, g = _landmarks(pred), _landmarks(gt)
+        a, g = image_landmarks(pred), image_landmarks(gt)
         out["akd_px"] = np.linalg.norm(a - g, axis=-1).mean(-1)
-        out["eye_opening_error_px"] = np.abs(_openings(a, EYELID_PAIRS) - _openings(g, EYELID_PAIRS))
-        out["mouth_opening_error_px"] = np.abs(_openings(a, MOUTH_PAIRS) - _openings(g, MOUTH_PAIRS))
+        out["eye_opening_error_px"] = np.abs(openings(a, EYELID_PAIRS) - openings(g, EYELID_PAIRS))
+        out["mouth_opening_error_px"] = np.abs(openings(a, MOUTH_PAIRS) - openings(g, MOUTH_PAIRS))
     return out
 
 

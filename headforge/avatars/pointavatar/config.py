@@ -33,8 +33,8 @@ class PointAvatarConfig(EngineConfig):
     deformer_layers: int = 4
     shading_width: int = 64
     shading_layers: int = 2
-    # headforge's deviation (docs/pointavatar.md): albedo from a separate MLP with its own, finer
-    # positional encoding; 0: albedo from the canonical network, as the paper
+    # headforge's deviation 12 (docs/pointavatar.md; quick: 64): albedo from a separate MLP with its
+    # own, finer positional encoding; 0: albedo from the canonical network, as the paper
     albedo_width: int = 0
     albedo_layers: int = 3
     albedo_frequencies: int = 8
@@ -73,8 +73,11 @@ class PointAvatarConfig(EngineConfig):
     def quick(cls) -> "PointAvatarConfig":
         """Sized by the measured cost per step (docs/pointavatar.md: 2 CPU threads, 256^2, 2 frames:
         0.38 s at 5K points, 1.2 s at 20K, 10 s at 100K with these networks; the paper's 4.3 / 13 /
-        43 s): at most 6400 points, 3000 iterations, the Eikonal term on 2000 + 2000 samples."""
+        43 s): at most 6400 points, 3000 iterations, the Eikonal term on 2000 + 2000 samples; the
+        albedo from its own 3 x 64 network (deviation 12: AKD 4.93 -> 4.09 px on talking_bun,
+        3.60 -> 2.35 on talking_longhair, docs/pointavatar.md)."""
         return cls(iterations=3000, max_points=6400, upsample_every=500, prune_every=250, points_per_pixel=6,
+                   albedo_width=64,
                    canonical_width=64, canonical_layers=4, canonical_skip=2, frequencies=4, deformer_width=64,
                    deformer_layers=3, shading_width=32, eikonal_samples=2000, lr=5e-4, lr_points=5e-4,
                    val_every=500, checkpoint_every=250, tto_steps=50, tto_photometric_steps=0)
