@@ -252,3 +252,32 @@ def test_cpbd_matches_the_reference_package():
             assert ours == pytest.approx(reference(blurred * 255), abs=2e-3)
             values.append(ours)
     assert values[0] > values[1] and values[2] > values[3]  # blur lowers CPBD
+
+
+def test_landmark_scores_split_akd_by_face_region():
+    """The regions partition MediaPipe's 478 landmarks; a shift of the lips alone shows in the lips'
+    AKD, in the mouth opening and in the all-landmark AKD by the lips' share, nowhere else."""
+    from headforge.metrics.protocol import landmark_regions, landmark_scores
+
+    regions = landmark_regions()
+    every = np.concatenate(list(regions.values()))
+    assert len(every) == 478 and set(every.tolist()) == set(range(478))
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(50, 200, (2, 478, 2))
+    upper_lip, lower_lip = np.array([13, 82, 312]), np.array([14, 87, 317])  # the inner-lip pairs
+    truth[:, lower_lip] = truth[:, upper_lip] + np.array([0.0, 10.0])  # each lower point 10 px below its upper one
+    pred = truth.copy()
+    assert set(lower_lip) <= set(regions["lips"].tolist())
+    pred[:, regions["lips"], 1] += 3.0
+    pred[:, lower_lip, 1] += 2.0  # the mouth opens by 2 px more
+    s = landmark_scores(pred, truth, by_region=True)
+    lips = np.full(len(regions["lips"]), 3.0)
+    lips[np.isin(regions["lips"], lower_lip)] = 5.0
+    np.testing.assert_allclose(s["akd_lips_px"], lips.mean())
+    np.testing.assert_allclose(s["akd_px"], lips.sum() / 478)
+    np.testing.assert_allclose(s["mouth_opening_error_px"], 2.0)
+    for name in regions:
+        if name != "lips":
+            np.testing.assert_allclose(s[f"akd_{name}_px"], 0.0)
+    np.testing.assert_allclose(s["eye_opening_error_px"], 0.0)
+    assert "akd_lips_px" not in landmark_scores(pred, truth)

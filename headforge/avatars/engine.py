@@ -123,9 +123,10 @@ def backward_step(method: Method, avatar: Avatar, optimisers: dict, data: FrameD
 
 @torch.no_grad()
 def score(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path | None = None, max_images: int = 6,
-          landmarks: bool = False, render_options: dict | None = None) -> tuple[dict, dict]:
+          landmarks: bool = False, render_options: dict | None = None, by_region: bool = False) -> tuple[dict, dict]:
     """The protocol's scores of ``data``'s frames at the avatar's frame parameters: (summary,
-    per-frame arrays). Writes up to ``max_images`` frame | avatar PNGs to ``out_dir``."""
+    per-frame arrays); with ``landmarks`` and ``by_region`` AKD per face region too. Writes up to
+    ``max_images`` frame | avatar PNGs to ``out_dir``."""
     from headforge.metrics.protocol import composite, score_frames, summarise
     from headforge.render.camera import Cameras
     from headforge.render.io import write_png
@@ -137,7 +138,7 @@ def score(method: Method, avatar: Avatar, data: FrameData, config, out_dir: Path
         cams = Cameras.at_origin(data.K, len(rows), config.resolution)
         r = method.render_for_scoring(avatar, avatar.frame_params(batch["index"]), cams, **(render_options or {}))
         s = score_frames(r.rgb, r.coverage, batch["image"], batch["mask"], batch["region"], batch["face_scored"],
-                         landmarks=landmarks)
+                         landmarks=landmarks, by_region=by_region)
         for k, v in s.items():
             per_frame.setdefault(k, []).append(v)
         if out_dir is not None and saved < max_images:

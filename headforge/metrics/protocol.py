@@ -88,9 +88,38 @@ def image_landmarks(images: torch.Tensor) -> np.ndarray:
     return out
 
 
-def openings(landmarks: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+def _openings(landmarks: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(B,) mean distance (px) between the landmarks of each pair."""
     return np.linalg.norm(landmarks[:, pairs[:, 0]] - landmarks[:, pairs[:, 1]], axis=-1).mean(-1)
+
+
+def landmark_regions() -> dict[str, np.ndarray]:
+    """MediaPipe's 478 landmark indices by face region (eyes, irises, brows, lips, nose, oval;
+    "rest" every other one): a partition of range(478)."""
+    from mediapipe.python.solutions import face_mesh_connections as c
+
+    def ids(*sets) -> set[int]:
+        return {i for s in sets for edge in s for i in edge}
+
+    out = {"eyes": ids(c.FACEMESH_LEFT_EYE, c.FACEMESH_RIGHT_EYE), "irises": set(range(468, 478)),
+           "brows": ids(c.FACEMESH_LEFT_EYEBROW, c.FACEMESH_RIGHT_EYEBROW), "lips": ids(c.FACEMESH_LIPS),
+           "nose": ids(c.FACEMESH_NOSE), "oval": ids(c.FACEMESH_FACE_OVAL)}
+    out["rest"] = set(range(478)) - set().union(*out.values())
+    return {k: np.array(sorted(v)) for k, v in out.items()}
+
+
+def landmark_scores(pred: np.ndarray, truth: np.ndarray, by_region: bool = False) -> dict[str, np.ndarray]:
+    """Per-frame (B,) scores of MediaPipe landmarks ``pred`` on the avatar's images against
+    ``truth`` on the frames ((B, 478, 2) px, NaN where no face was found): AKD over all 478, the
+    eye- and mouth-opening errors, and with ``by_region`` AKD per :func:`landmark_regions` region
+    (``akd_<region>_px``)."""
+    dist = np.linalg.norm(pred - truth, axis=-1)  # (B, 478)
+    out = {"akd_px": dist.mean(-1),
+           "eye_opening_error_px": np.abs(_openings(pred, EYELID_PAIRS) - _openings(truth, EYELID_PAIRS)),
+           "mouth_opening_error_px": np.abs(_openings(pred, MOUTH_PAIRS) - _openings(truth, MOUTH_PAIRS))}
+    if by_region:
+        out |= {f"akd_{name}_px": dist[:, idx].mean(-1) for name, idx in landmark_regions().items()}
+    return out
 
 
 def _masked_psnr(pred: torch.Tensor, gt: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -111,7 +140,8 @@ def composite(rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor, region
 
 @torch.no_grad()
 def score_frames(rgb: torch.Tensor, coverage: torch.Tensor, image: torch.Tensor, mask: torch.Tensor,
-                 region: torch.Tensor, face: torch.Tensor, landmarks: bool = True) -> dict[str, np.ndarray]:
+                 region: torch.Tensor, face: torch.Tensor, landmarks: bool = True,
+                 by_region: bool = False) -> dict[str, np.ndarray]:
     """Per-frame scores (name -> (B,) float64, NaN where undefined) of the avatar's ``rgb``
     (B, H, W, 3, on white) and ``coverage`` (B, H, W) against the frames ``image`` / ``mask``,
     inside the head ``region`` and the model's ``face`` region ((B, H, W) bool each)."""
@@ -129,10 +159,7 @@ def score_frames(rgb: torch.Tensor, coverage: torch.Tensor, image: torch.Tensor,
         out["ms_ssim"] = np.array([ms_ssim(pred[b:b + 1], gt[b:b + 1]).item() for b in range(B)])
     out["cpbd"] = np.array([cpbd(pred[b].cpu().numpy()) for b in range(B)])
     if landmarks:
-        a, g = image_landmarks(pred), image_landmarks(gt)
-        out["akd_px"] = np.linalg.norm(a - g, axis=-1).mean(-1)
-        out["eye_opening_error_px"] = np.abs(openings(a, EYELID_PAIRS) - openings(g, EYELID_PAIRS))
-        out["mouth_opening_error_px"] = np.abs(openings(a, MOUTH_PAIRS) - openings(g, MOUTH_PAIRS))
+        out |= landmark_scores(image_landmarks(pred), image_landmarks(gt), by_region)
     return out
 
 
