@@ -245,13 +245,41 @@ def test_gt_supervision_trains_the_sdf_normals_on_the_gt_normal_maps(synth_bench
     head = TrackedHead(assets.head_data(), assets.tracking["shape"])
     train = FrameData(dataset, "train", config.resolution, head, supervision="gt")
     terms = losses(avatar, train.batch(torch.arange(2)), train.K, config, "train")
-    assert terms["normal_abs"] > 0
-    avatar.zero_grad()
-    terms["normal_abs"].backward()
-    assert sum(p.grad.abs().sum() for p in avatar.canonical_net.parameters() if p.grad is not None) > 0
+    for term in ("normal_abs", "normal_points"):  # per pixel, and per visible point
+        assert terms[term] > 0
+        avatar.zero_grad()
+        terms[term].backward(retain_graph=True)
+        assert sum(p.grad.abs().sum() for p in avatar.canonical_net.parameters() if p.grad is not None) > 0
     predicted = FrameData(dataset, "train", config.resolution, head)
-    assert "normal_abs" not in losses(avatar, predicted.batch(torch.arange(2)), predicted.K, config, "train")
-    assert PointAvatarConfig.paper().w_normal_abs == 0 and PointAvatarConfig.quick().w_normal_abs > 0
+    no_gt = losses(avatar, predicted.batch(torch.arange(2)), predicted.K, config, "train")
+    assert "normal_abs" not in no_gt and "normal_points" not in no_gt
+    paper, quick = PointAvatarConfig.paper(), PointAvatarConfig.quick()
+    assert paper.w_normal_abs == paper.w_normal_points == 0 and quick.w_normal_abs > 0 and quick.w_normal_points > 0
+
+
+def test_the_point_normal_term_scores_each_visible_point_against_the_gt_normal_at_its_pixel():
+    """Each point counts alone (a scatter that averages right within a pixel still costs), and only
+    where it is visible, inside the image and on a pixel the GT covers within the area."""
+    from headforge.avatars.supervision import point_normal_term
+
+    gt = torch.zeros(1, 4, 4, 3)
+    gt[0, :, :2] = torch.tensor([0.0, 0.0, -1.0])  # left half covered, facing the camera
+    area = torch.ones(1, 4, 4, dtype=torch.bool)
+    pixels = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [3.0, 1.0], [9.0, 1.0]]])  # two on the GT, one off it, one outside
+    right = torch.tensor([0.0, 0.0, -1.0]).expand(1, 4, 3)
+    visible = torch.ones(1, 4, dtype=torch.bool)
+    assert point_normal_term(pixels, right, visible, gt, area) == 0
+    tilt = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, -1.0]), dim=0)
+    scattered = torch.stack([tilt, tilt * torch.tensor([-1.0, 1.0, 1.0]), tilt, tilt])[None]  # mean of the two is right
+    assert point_normal_term(pixels, scattered, visible, gt, area) == pytest.approx(1.0)  # |sin| + (1 - cos) at 45 degrees
+    flipped = scattered.clone()
+    flipped[0, 1] = torch.tensor([0.0, 0.0, 1.0])  # costs 2
+    assert point_normal_term(pixels, flipped, visible, gt, area) == pytest.approx(1.5)
+    hidden = torch.tensor([[True, False, True, True]])  # the flipped point hidden: it does not count
+    assert point_normal_term(pixels, flipped, hidden, gt, area) == pytest.approx(1.0)
+    off = point_normal_term(pixels[:, 2:], scattered[:, 2:], visible[:, 2:], gt, area)  # off the GT or the image
+    assert off == 0
+    assert point_normal_term(pixels, scattered, visible, gt, torch.zeros_like(area)) == 0
 
 
 def test_relighting_is_blind_to_the_albedo_shading_ambiguity(rendered):

@@ -43,3 +43,23 @@ def normal_abs_term(normals: torch.Tensor, gt_normals: torch.Tensor, covered: to
     valid = covered & (gt_normals.norm(dim=-1) > 0.5) & area
     diff = (normals - gt_normals).abs().sum(-1)
     return (diff * valid).sum() / valid.sum().clamp(min=1)
+
+
+def point_normal_term(pixels: torch.Tensor, normals: torch.Tensor, visible: torch.Tensor, gt_normals: torch.Tensor,
+                      area: torch.Tensor) -> torch.Tensor:
+    """L1 between each visible point's own camera-space unit normal and the ground-truth normal at
+    the pixel it projects to, summed over the channels, mean over the points that count: visible
+    (``visible`` (B, N) bool) and on a pixel of ``area`` (B, H, W) bool that the GT covers.
+    ``pixels`` (B, N, 2) projected positions (centres at integers), ``normals`` (B, N, 3),
+    ``gt_normals`` (B, H, W, 3). Beyond PointAvatar: a per-pixel term on composited normals
+    (:func:`normal_abs_term`) lets the normals of the points a pixel blends scatter about the
+    right mean; this one asks it of every point the images show."""
+    B, H, W, _ = gt_normals.shape
+    x = pixels[..., 0].round().long().clamp(0, W - 1)
+    y = pixels[..., 1].round().long().clamp(0, H - 1)
+    b = torch.arange(B, device=pixels.device)[:, None]
+    target = gt_normals[b, y, x]  # (B, N, 3)
+    inside = (pixels[..., 0] >= -0.5) & (pixels[..., 0] < W - 0.5) & (pixels[..., 1] >= -0.5) & (pixels[..., 1] < H - 0.5)
+    valid = visible & inside & area[b, y, x] & (target.norm(dim=-1) > 0.5)
+    diff = (normals - target).abs().sum(-1)
+    return (diff * valid).sum() / valid.sum().clamp(min=1)

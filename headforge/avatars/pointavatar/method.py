@@ -7,7 +7,7 @@ RGB L1 against the frame matted on white, the mask L1, the head-model regularise
 blendshapes, pose correctives and skinning weights against the nearest canonical head-model
 vertex's), the SDF data term at the points and the Eikonal term at the points and perturbed
 copies; with ``--supervision gt`` (beyond the paper) an L1 of the splatted normals against the
-GT normal maps. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
+GT normal maps, and one of each visible point's normal against the GT normal at its pixel. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
 as the paper's test-time tracking does; with ``w_landmarks`` / ``w_eyelids`` > 0 (an option beyond
 the paper, off in both presets: measured worse, docs/pointavatar.md) the fitting also pulls the head
 model's landmarks, less the avatar's landmark bias, to the detections.
@@ -21,7 +21,7 @@ from headforge.avatars.base import Method, Stage, frame_optimiser
 from headforge.avatars.pointavatar.config import PointAvatarConfig
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
-from headforge.avatars.supervision import eyelid_term, landmark_term, normal_abs_term
+from headforge.avatars.supervision import eyelid_term, landmark_term, normal_abs_term, point_normal_term
 from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras, project_points
 
@@ -99,10 +99,10 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
     params = avatar.frame_params(batch["index"]) if params is None else params
     training = stage == "train"
     # ground truth (a synth subject's training frames with --supervision gt): its normal maps
-    gt = batch.get("gt_known") if training and config.w_normal_abs > 0 else None
+    gt = batch.get("gt_known") if training and (config.w_normal_abs > 0 or config.w_normal_points > 0) else None
     gt = gt if gt is not None and bool(gt.any()) else None
     r = avatar.render(params, Cameras.at_origin(K, B, config.resolution), background=1.0, training=training,
-                      hole_filling=False, normals=gt is not None)
+                      hole_filling=False, normals=gt is not None and config.w_normal_abs > 0)
     region = batch["region"]
     w = region[..., None].float()
     target = matte_on_white(batch["image"], batch["mask"])
@@ -118,7 +118,12 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
         out["ssim"] = config.w_ssim * (1 - ssim(r.rgb * w + (1 - w), target * w + (1 - w)).mean())
     if gt is not None:
         known = region & gt[:, None, None]
-        out["normal_abs"] = config.w_normal_abs * normal_abs_term(r.normals, batch["gt_normals"], r.coverage > 0.5, known)
+        if config.w_normal_abs > 0:
+            out["normal_abs"] = config.w_normal_abs * normal_abs_term(r.normals, batch["gt_normals"], r.coverage > 0.5, known)
+        if config.w_normal_points > 0:
+            pixels = project_points(r.points, K)
+            out["normal_points"] = config.w_normal_points * point_normal_term(
+                pixels, r.point_normals, r.max_weight > 0.5, batch["gt_normals"], known)
     c = r.canonical
     out["flame"] = config.w_flame * head_model_term(avatar, c, config)
     out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()

@@ -41,11 +41,14 @@ SCALE = 0.15  # m: the networks' unit (a head is about +-1 of it around its cent
 @dataclass(kw_only=True)
 class PointRender(AvatarRender):
     """PointAvatar's render: rgb, coverage, camera-space normals (when asked for), and per
-    point: ``max_weight`` (B, N) the largest compositing weight (pruning); ``albedo`` /
-    ``shading`` (B, H, W, 3) composited when asked for (pictures, relighting tests)."""
+    point: ``max_weight`` (B, N) the largest compositing weight (pruning), ``points`` and
+    ``point_normals`` (B, N, 3) the posed points and their unit normals in camera space;
+    ``albedo`` / ``shading`` (B, H, W, 3) composited when asked for (pictures, relighting tests)."""
 
     max_weight: torch.Tensor
     canonical: "Canonical"
+    points: torch.Tensor
+    point_normals: torch.Tensor
     albedo: torch.Tensor | None = None
     shading: torch.Tensor | None = None
 
@@ -298,7 +301,7 @@ class PointAvatarModel(Avatar):
         if hole_filling if hole_filling is not None else (self.hole_filling and not training):
             f, mask = fill_holes(f, mask)
         rgb = f[..., :3] + (1 - mask[..., None]) * background
-        out = PointRender(rgb, mask, max_weight=img.max_weight, canonical=c)
+        out = PointRender(rgb, mask, max_weight=img.max_weight, canonical=c, points=pts, point_normals=n_cam)
         i = 3
         if normals:
             out.normals = torch.nn.functional.normalize(f[..., i:i + 3], dim=-1) * (mask[..., None] > 1e-3)
