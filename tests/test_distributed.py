@@ -106,7 +106,8 @@ def test_two_process_gradients_equal_the_single_process_gradients(rendered, tiny
             if stage == "joint":
                 assert any(n.startswith("texture_net.") for n in networks)
             for name, g in single.items():
-                assert _differs(ddp[stage][name], g) < 1e-5, (stage, name, _differs(ddp[stage][name], g))
+                # float32 all-reduce against one process's sum: 1.2e-5 on an AMD EPYC host
+                assert _differs(ddp[stage][name], g) < 1e-4, (stage, name, _differs(ddp[stage][name], g))
             # not a comparison that cannot fail: one rank's share alone gives other gradients
             assert max(_differs(half[n], single[n]) for n in networks) > 1e-2
             # a frame's parameters get their gradient from the rank holding the frame, scaled as
