@@ -229,8 +229,8 @@ def test_the_demo_runs_with_pointavatar_and_scores_its_points_on_the_ground_trut
 def test_gt_supervision_trains_the_sdf_normals_on_the_gt_normal_maps(synth_bench):
     """--supervision gt (beyond the paper): the splatted normals of the training frames meet the
     subject's GT normal maps in an L1 whose gradient reaches the canonical SDF network (the normals
-    are its gradient, through the deformation's Jacobian); predicted supervision and the paper
-    preset have no such term."""
+    are its gradient, through the deformation's Jacobian), and so, when asked for, do the visible
+    points' own normals; predicted supervision and the paper preset have no such term."""
     from headforge.avatars import registry
     from headforge.avatars.frames import FrameData
     from headforge.avatars.pointavatar.config import PointAvatarConfig
@@ -239,7 +239,7 @@ def test_gt_supervision_trains_the_sdf_normals_on_the_gt_normal_maps(synth_bench
     from headforge.metrics.protocol import TrackedHead
 
     dataset = synth_bench[0] / "subject_00"
-    config = tiny_config(supervision="gt")
+    config = tiny_config(supervision="gt", w_normal_points=1.0)
     assets = RunAssets.from_dataset(dataset)
     avatar = registry.get("pointavatar").build(assets, config)
     head = TrackedHead(assets.head_data(), assets.tracking["shape"])
@@ -254,7 +254,8 @@ def test_gt_supervision_trains_the_sdf_normals_on_the_gt_normal_maps(synth_bench
     no_gt = losses(avatar, predicted.batch(torch.arange(2)), predicted.K, config, "train")
     assert "normal_abs" not in no_gt and "normal_points" not in no_gt
     paper, quick = PointAvatarConfig.paper(), PointAvatarConfig.quick()
-    assert paper.w_normal_abs == paper.w_normal_points == 0 and quick.w_normal_abs > 0 and quick.w_normal_points > 0
+    assert paper.w_normal_abs == 0 and quick.w_normal_abs > 0
+    assert paper.w_normal_points == quick.w_normal_points == 0  # an option, measured worse (deviation 14)
 
 
 def test_the_point_normal_term_scores_each_visible_point_against_the_gt_normal_at_its_pixel():

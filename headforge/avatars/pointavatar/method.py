@@ -7,7 +7,8 @@ RGB L1 against the frame matted on white, the mask L1, the head-model regularise
 blendshapes, pose correctives and skinning weights against the nearest canonical head-model
 vertex's), the SDF data term at the points and the Eikonal term at the points and perturbed
 copies; with ``--supervision gt`` (beyond the paper) an L1 of the splatted normals against the
-GT normal maps, and one of each visible point's normal against the GT normal at its pixel. Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
+GT normal maps (and, as an option off in both presets, one of each visible point's own normal
+against the GT normal at its pixel). Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
 as the paper's test-time tracking does; with ``w_landmarks`` / ``w_eyelids`` > 0 (an option beyond
 the paper, off in both presets: measured worse, docs/pointavatar.md) the fitting also pulls the head
 model's landmarks, less the avatar's landmark bias, to the detections.
