@@ -11,7 +11,8 @@ Per scored frame the points are selected and aligned exactly as the protocol's n
 after the rigid ICP of the face points to the GT face); each point's ``|cos|`` against the normal
 of its closest GT surface point is then split by that point's GT label, by whether the point is
 visible from the frame's camera (within ``--depth-tolerance`` mm of the nearest point splatted on
-its pixel) and by its distance to the GT surface. ``splatted`` replaces each visible point's own
+its pixel), by its distance to the GT surface and by how squarely that GT surface faces the camera
+(|n . v|: 1 facing it, 0 seen edge-on). ``splatted`` replaces each visible point's own
 normal by the composited normal map at its pixel (what the normal-map losses see). Prints a table,
 then one JSON line.
 """
@@ -23,25 +24,29 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
+import trimesh
 
 from headforge.errors import HeadforgeError
 from headforge.metrics.benchmark import (_point_distances, exported_geometry, gt_point_labels, load_subject_gt,
                                          outer_surface_faces, prediction_rows, split_rows, splat_normals)
+from headforge.render.camera import project_points
 
 DISTANCE_BINS_MM = (0.0, 1.0, 3.0, 10.0, np.inf)
+FACING_BINS = (0.0, 0.3, 0.6, 0.8, 1.01)
 
 
 def frame_split(points, normals, radius, gv, gf, gt_labels, K, res, tolerance_m):
     """Per point (P,): |cos| against the closest GT face normal, GT label, distance (m), visible
-    (bool), and |cos| of the splatted normal at its pixel (nan where not visible)."""
+    (bool), |cos| of the splatted normal at its pixel (nan where not visible), and how squarely the
+    closest GT face faces the camera (|n . view direction|)."""
     closest, distance, tri, label = gt_point_labels(points, gv, gf, gt_labels)
-    e1, e2 = gv[gf[tri, 1]] - gv[gf[tri, 0]], gv[gf[tri, 2]] - gv[gf[tri, 0]]
-    gt_n = np.cross(e1, e2)
-    gt_n /= np.linalg.norm(gt_n, axis=1, keepdims=True).clip(min=1e-12)
+    gt_n = trimesh.Trimesh(gv, gf, process=False).face_normals[tri]
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(min=1e-12)
     cos = np.abs((n * gt_n).sum(1))
-    uv = points @ K.T
-    px = np.clip(np.round(uv[:, :2] / uv[:, 2:3]).astype(int), 0, res - 1)
+    facing = np.abs((gt_n * points / np.linalg.norm(points, axis=1, keepdims=True)).sum(1))
+    uv = project_points(torch.from_numpy(points), torch.from_numpy(K)).numpy()
+    px = np.clip(np.round(uv).astype(int), 0, res - 1)
     flat = px[:, 1] * res + px[:, 0]
     zbuf = np.full(res * res, np.inf)
     np.minimum.at(zbuf, flat, points[:, 2])
@@ -49,22 +54,21 @@ def frame_split(points, normals, radius, gv, gf, gt_labels, K, res, tolerance_m)
     nmap = splat_normals(points, normals, radius, K, res).reshape(-1, 3)
     splat_cos = np.where(visible & (np.linalg.norm(nmap[flat], axis=1) > 0.5),
                          np.abs((nmap[flat] * gt_n).sum(1)), np.nan)
-    return cos, label, distance, visible, splat_cos
+    return cos, label, distance, visible, splat_cos, facing
 
 
-def checkpoint_geometry(run: Path, subject: Path) -> Path:
-    """A temporary folder with the geometry file of ``run``'s checkpoint at ``subject``'s GT frames."""
+def checkpoint_geometry(run: Path, subject: Path):
+    """The posed geometry of ``run``'s checkpoint at ``subject``'s GT frames (as read back from
+    the geometry file :func:`export_geometry` writes, in a folder removed afterwards)."""
     import tempfile
 
     from headforge.avatars.engine import export_geometry
     from headforge.avatars.run import load_run
 
-    import torch
-
-    folder = Path(tempfile.mkdtemp(prefix="nc_split_"))
-    with torch.no_grad():
-        export_geometry(load_run(run, "cpu", method="pointavatar").avatar, subject, folder / "geometry.safetensors")
-    return folder
+    avatar = load_run(run, "cpu", method="pointavatar").avatar
+    with tempfile.TemporaryDirectory(prefix="nc_split_") as folder, torch.no_grad():
+        export_geometry(avatar, subject, Path(folder) / "geometry.safetensors")
+        return exported_geometry(folder)
 
 
 def main() -> None:
@@ -81,7 +85,7 @@ def main() -> None:
         gt, info = load_subject_gt(args.subject)
         rows, _ = split_rows(gt, info, args.subject, args.split, args.every)
         frames = gt["frames"][rows]
-        pred = exported_geometry(checkpoint_geometry(args.run, args.subject) if args.checkpoint else args.run)
+        pred = checkpoint_geometry(args.run, args.subject) if args.checkpoint else exported_geometry(args.run)
         if not pred.is_points:
             raise HeadforgeError(f"{args.run} holds a mesh: this split is for point sets")
         lookup = prediction_rows(pred, frames, args.run)
@@ -92,7 +96,7 @@ def main() -> None:
     names = {v: k for k, v in info["labels"].items()}
     subset = np.random.default_rng(0).permutation(pred.vertices.shape[1])[:args.samples]
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
-    pooled = {k: [] for k in ("cos", "label", "distance", "visible", "splat_cos")}
+    pooled = {k: [] for k in ("cos", "label", "distance", "visible", "splat_cos", "facing")}
     protocol = []
     for row, f, i in zip(rows, frames, lookup):
         gv, gf = gt["vertices"][row], gt["faces"]
@@ -103,9 +107,9 @@ def main() -> None:
         head = regions[1][subset] if regions is not None else np.ones(len(subset), bool)
         ids = subset[head][:4000]
         # visibility and the splatted map from every aligned point, scored on the protocol's points
-        cos, label, distance, visible, splat_cos = frame_split(aligned[ids], aligned_n[ids], pred.radius[i][ids],
-                                                               gv, gf, gt["labels"], K, res, args.depth_tolerance / 1000)
-        for key, value in zip(pooled, (cos, label, distance, visible, splat_cos)):
+        split = frame_split(aligned[ids], aligned_n[ids], pred.radius[i][ids], gv, gf, gt["labels"], K, res,
+                            args.depth_tolerance / 1000)
+        for key, value in zip(pooled, split):
             pooled[key].append(value)
     p = {k: np.concatenate(v) for k, v in pooled.items()}
     result = {"run": str(args.run), "subject": str(args.subject), "frames": len(protocol),
@@ -116,6 +120,8 @@ def main() -> None:
     groups |= {"visible": p["visible"], "hidden": ~p["visible"]}
     for lo, hi in zip(DISTANCE_BINS_MM[:-1], DISTANCE_BINS_MM[1:]):
         groups[f"distance {lo:g}-{hi:g} mm"] = (p["distance"] * 1000 >= lo) & (p["distance"] * 1000 < hi)
+    for lo, hi in zip(FACING_BINS[:-1], FACING_BINS[1:]):
+        groups[f"facing |n.v| {lo:g}-{min(hi, 1):g}"] = (p["facing"] >= lo) & (p["facing"] < hi)
     print(f"{'group':24s} {'share':>6s} {'NC':>6s}  {'NC splatted (visible)':>22s}")
     for name, sel in groups.items():
         if not sel.any():
