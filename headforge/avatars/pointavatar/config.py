@@ -21,6 +21,7 @@ class PointAvatarConfig(EngineConfig):
     init_cloud: str = "sphere"  # sphere: the paper; head: on the canonical head model's surface (docs/pointavatar.md)
     init_point_radius: float = 0.0  # world radius (m) of the initial discs; 0: discs covering the sphere twice
     radius_factor: float = 0.75  # radius multiple at each doubling
+    upsample_spread: float = 0.5  # half-width of the copies' uniform perturbation, in point radii (the authors' code)
     upsample_every: int = 625  # iterations between doublings (the authors' 5 epochs)
     prune_every: int = 125  # iterations between prunes (one epoch)
     points_per_pixel: int = 10

@@ -169,7 +169,8 @@ class PointAvatarMethod(Method):
             ctx.state.setdefault("pruned", []).append([it, before, removed])
             changed = True
         if it % config.upsample_every == 0 and 2 * avatar.n_points <= config.max_points:
-            avatar.upsample(torch.Generator().manual_seed(config.seed + it), config.radius_factor)
+            avatar.upsample(torch.Generator().manual_seed(config.seed + it), config.radius_factor,
+                            config.upsample_spread)
             changed = True
         if changed:
             ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])

@@ -339,11 +339,11 @@ class PointAvatarModel(Avatar):
         self.visible = torch.zeros(self.n_points, dtype=torch.bool, device=keep.device)
         return removed
 
-    def upsample(self, gen: torch.Generator, factor: float) -> None:
-        """Double the points by copies perturbed within the current radius, and shrink the radius
-        by ``factor`` (paper supp. 2.2: 0.75)."""
+    def upsample(self, gen: torch.Generator, factor: float, spread: float = 1.0) -> None:
+        """Double the points by copies perturbed uniformly within +-``spread`` point radii per axis,
+        and shrink the radius by ``factor`` (paper supp. 2.2: 0.75)."""
         p = self.points.detach()
-        noise = (torch.rand(p.shape, generator=gen) * 2 - 1).to(p) * (self.radius / SCALE)
+        noise = (torch.rand(p.shape, generator=gen) * 2 - 1).to(p) * (spread * self.radius / SCALE)
         self.points = nn.Parameter(torch.cat([p, p + noise]))
         self.radius = self.radius * factor
         self.visible = torch.zeros(self.n_points, dtype=torch.bool, device=p.device)
