@@ -133,7 +133,7 @@ def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(r
     assert avatar.prune() == int((~keep).sum())
     assert torch.equal(avatar.points.detach(), q[keep]) and not avatar.visible.any()
     radius = float(avatar.radius)
-    avatar.upsample(torch.Generator().manual_seed(1), 0.75)
+    avatar.upsample(torch.Generator().manual_seed(1), 0.75, spread=1.0)
     p = avatar.points.detach()
     n = int(keep.sum())
     assert len(p) == 2 * n and torch.equal(p[:n], q[keep])
@@ -142,12 +142,10 @@ def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(r
     assert ((p[n:] - p[:n]).abs().max() * SCALE) <= radius + 1e-7 and (p[n:] != p[:n]).any()
     assert float(avatar.radius) == pytest.approx(0.75 * radius)
     # the authors' spread: copies within half a radius per axis
-    avatar.visible[:] = True
     before, radius = avatar.points.detach().clone(), float(avatar.radius)
     avatar.upsample(torch.Generator().manual_seed(2), 0.75, spread=0.5)
     offset = (avatar.points.detach()[len(before):] - before).abs().max() * SCALE
     assert 0.4 * radius < offset <= 0.5 * radius + 1e-7
-    avatar.visible[:] = False
     with pytest.raises(HeadforgeError, match="pruned away"):
         avatar.prune()  # nothing was visible since
 

@@ -339,7 +339,7 @@ class PointAvatarModel(Avatar):
         self.visible = torch.zeros(self.n_points, dtype=torch.bool, device=keep.device)
         return removed
 
-    def upsample(self, gen: torch.Generator, factor: float, spread: float = 1.0) -> None:
+    def upsample(self, gen: torch.Generator, factor: float, spread: float) -> None:
         """Double the points by copies perturbed uniformly within +-``spread`` point radii per axis,
         and shrink the radius by ``factor`` (paper supp. 2.2: 0.75)."""
         p = self.points.detach()
