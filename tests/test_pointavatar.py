@@ -363,3 +363,21 @@ def test_the_landmark_terms_steer_the_frame_fitting_to_the_detections_less_the_a
         assert float(sum(landmark_terms(avatar, p0, detected, data.K, config).values())) < 1e-5
     assert set(losses(avatar, batch, data.K, tiny_config(), "align", params)) == {"rgb"}
     assert PointAvatarConfig.paper().w_landmarks == 0 == PointAvatarConfig.quick().w_landmarks  # off: measured worse
+
+
+def test_mouth_seed_adds_points_inside_the_canonical_inner_lips(rendered):
+    from headforge.avatars.pointavatar.model import MOUTH_DEPTH, SCALE
+
+    avatar = deformed_avatar(rendered).float()
+    ring = avatar.canonical_mouth
+    assert ring.shape == (20, 3)
+    n0 = avatar.n_points
+    avatar.seed_mouth(torch.Generator().manual_seed(0), 0)
+    assert avatar.n_points == n0
+    avatar.seed_mouth(torch.Generator().manual_seed(0), 500)
+    assert avatar.n_points == n0 + 500 and avatar.visible.shape == (n0 + 500,)
+    x = avatar.points.detach()[n0:] * SCALE + avatar.centre
+    lo, hi = ring.min(0).values, ring.max(0).values
+    assert ((x[:, :2] >= lo[:2] - 1e-6) & (x[:, :2] <= hi[:2] + 1e-6)).all()  # within the lips' opening
+    assert (x[:, 2] <= hi[2] + 1e-6).all() and (x[:, 2] >= lo[2] - MOUTH_DEPTH - 1e-6).all()  # behind it
+    assert x[:, 2].min() < ring[:, 2].mean() - 0.5 * MOUTH_DEPTH  # some reach into the cavity

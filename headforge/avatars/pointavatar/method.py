@@ -171,6 +171,7 @@ class PointAvatarMethod(Method):
         if it % config.upsample_every == 0 and 2 * avatar.n_points <= config.max_points:
             avatar.upsample(torch.Generator().manual_seed(config.seed + it), config.radius_factor,
                             config.upsample_spread)
+            avatar.seed_mouth(torch.Generator().manual_seed(config.seed + it + 1), config.mouth_seed)
             changed = True
         if changed:
             ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])

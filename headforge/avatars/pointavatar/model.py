@@ -36,6 +36,9 @@ from headforge.render.shading import lambert, sh_shading
 
 CANONICAL_JAW = 0.4  # rad, the canonical pose's jaw opening (authors' code)
 SCALE = 0.15  # m: the networks' unit (a head is about +-1 of it around its centre)
+# MediaPipe's inner-lip contour as a closed ring (upper lip left to right, then the lower back)
+INNER_LIP_RING = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 317, 14, 87, 178, 88, 95)
+MOUTH_DEPTH = 0.015  # m: how far behind the lips' opening the seeded mouth points reach
 
 
 @dataclass(kw_only=True)
@@ -92,6 +95,8 @@ class PointAvatarModel(Avatar):
         self.register_buffer("canonical_transforms", self._with_static_bone(A_c)[0], persistent=False)
         self.register_buffer("canonical_pose_feature", p_c[0], persistent=False)
         self.register_buffer("centre", out.vertices[0].mean(0), persistent=False)
+        ring = out.landmarks[0, list(INNER_LIP_RING)] if out.landmarks is not None and out.landmarks.shape[1] == 478 else None
+        self.register_buffer("canonical_mouth", torch.zeros(0, 3) if ring is None else ring, persistent=False)
         V = self.head.num_vertices
         exprdirs = self.head.blenddirs[self.head.n_shape:].reshape(-1, V, 3).transpose(0, 1)  # (V, n_expr, 3)
         self.register_buffer("vertex_exprdirs", exprdirs.contiguous(), persistent=False)
@@ -346,6 +351,25 @@ class PointAvatarModel(Avatar):
         noise = (torch.rand(p.shape, generator=gen) * 2 - 1).to(p) * (spread * self.radius / SCALE)
         self.points = nn.Parameter(torch.cat([p, p + noise]))
         self.radius = self.radius * factor
+        self.visible = torch.zeros(self.n_points, dtype=torch.bool, device=p.device)
+
+    def seed_mouth(self, gen: torch.Generator, n: int) -> None:
+        """Add ``n`` points inside the canonical (jaw-open) mouth: uniform over the inner-lip ring's
+        fan about its centroid, pushed up to ``MOUTH_DEPTH`` back (-z, canonical head frame). The sphere's
+        points never reach the cavity (a concavity the doublings' copies do not enter), so an open
+        mouth would render the pruned head's emptiness. Nothing for a model without MediaPipe landmarks."""
+        ring = self.canonical_mouth
+        if n <= 0 or len(ring) == 0:
+            return
+        c = ring.mean(0)
+        i = torch.randint(len(ring), (n,), generator=gen)
+        u, v = torch.rand(n, generator=gen), torch.rand(n, generator=gen)
+        outside = u + v > 1
+        u, v = torch.where(outside, 1 - u, u), torch.where(outside, 1 - v, v)
+        x = c + u[:, None] * (ring[i] - c) + v[:, None] * (ring[(i + 1) % len(ring)] - c)
+        x[:, 2] -= torch.rand(n, generator=gen) * MOUTH_DEPTH  # backward: the canonical face looks toward +z
+        p = self.points.detach()
+        self.points = nn.Parameter(torch.cat([p, ((x - self.centre) / SCALE).to(p)]))
         self.visible = torch.zeros(self.n_points, dtype=torch.bool, device=p.device)
 
     def load_weights(self, state: dict[str, torch.Tensor]) -> None:
