@@ -43,6 +43,8 @@ FACE_OVAL_LOOP = (10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288, 397
                   152, 148, 176, 149, 150, 136, 172, 58, 132, 93, 234, 127, 162, 21, 54, 103, 67, 109)
 # Face-oval (silhouette) points of MediaPipe: excluded from "inner" error figures.
 FACE_OVAL = np.array(sorted(FACE_OVAL_LOOP))
+# MediaPipe's inner-lip contour as a closed loop (upper lip from the subject's right, then the lower back)
+INNER_LIP_LOOP = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 317, 14, 87, 178, 88, 95)
 
 # iBUG-68 upper/lower eyelid pairs (right eye first), for models embedding iBUG-68 (FLAME).
 IBUG_EYELID_PAIRS = np.array([[37, 41], [38, 40], [43, 47], [44, 46]])

@@ -28,6 +28,7 @@ from torch import nn
 from headforge.avatars.base import Avatar, AvatarRender, Geometry
 from headforge.avatars.pointavatar.networks import AlbedoNet, CanonicalNet, Deformer, ShadingNet
 from headforge.errors import HeadforgeError
+from headforge.head.landmarks import INNER_LIP_LOOP, N_MEDIAPIPE
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FLIP, FRAME_KEYS, head_to_camera
 from headforge.render.camera import Cameras
@@ -36,8 +37,6 @@ from headforge.render.shading import lambert, sh_shading
 
 CANONICAL_JAW = 0.4  # rad, the canonical pose's jaw opening (authors' code)
 SCALE = 0.15  # m: the networks' unit (a head is about +-1 of it around its centre)
-# MediaPipe's inner-lip contour as a closed ring (upper lip left to right, then the lower back)
-INNER_LIP_RING = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 317, 14, 87, 178, 88, 95)
 MOUTH_DEPTH = 0.015  # m: how far behind the lips' opening the seeded mouth points reach
 
 
@@ -95,7 +94,7 @@ class PointAvatarModel(Avatar):
         self.register_buffer("canonical_transforms", self._with_static_bone(A_c)[0], persistent=False)
         self.register_buffer("canonical_pose_feature", p_c[0], persistent=False)
         self.register_buffer("centre", out.vertices[0].mean(0), persistent=False)
-        ring = out.landmarks[0, list(INNER_LIP_RING)] if out.landmarks is not None and out.landmarks.shape[1] == 478 else None
+        ring = out.landmarks[0, list(INNER_LIP_LOOP)] if out.landmarks is not None and out.landmarks.shape[1] == N_MEDIAPIPE else None
         self.register_buffer("canonical_mouth", torch.zeros(0, 3) if ring is None else ring, persistent=False)
         V = self.head.num_vertices
         exprdirs = self.head.blenddirs[self.head.n_shape:].reshape(-1, V, 3).transpose(0, 1)  # (V, n_expr, 3)
@@ -355,9 +354,9 @@ class PointAvatarModel(Avatar):
 
     def seed_mouth(self, gen: torch.Generator, n: int) -> None:
         """Add ``n`` points inside the canonical (jaw-open) mouth: uniform over the inner-lip ring's
-        fan about its centroid, pushed up to ``MOUTH_DEPTH`` back (-z, canonical head frame). The sphere's
-        points never reach the cavity (a concavity the doublings' copies do not enter), so an open
-        mouth would render the pruned head's emptiness. Nothing for a model without MediaPipe landmarks."""
+        fan about its centroid, pushed up to ``MOUTH_DEPTH`` back (-z, canonical head frame): the
+        doublings' copies rarely enter that concavity (``mouth_seed``, off by default: measured no
+        better, docs/pointavatar.md deviation 15). Nothing for a model without MediaPipe landmarks."""
         ring = self.canonical_mouth
         if n <= 0 or len(ring) == 0:
             return
