@@ -122,6 +122,10 @@ def test_a_head_initialised_cloud_starts_on_the_canonical_head_model_surface(ren
     assert len(torch.unique(nearest)) > 0.5 * len(x_o)  # 300 points fall near many different vertices
     with pytest.raises(HeadforgeError, match="init_cloud"):
         tiny_config(init_cloud="cube").validate()
+    with pytest.raises(HeadforgeError, match="mouth_seed"):
+        tiny_config(mouth_seed=-1).validate()
+    with pytest.raises(HeadforgeError, match="upsample_spread"):
+        tiny_config(upsample_spread=-0.5).validate()
 
 
 def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(rendered):

@@ -116,3 +116,5 @@ class PointAvatarConfig(EngineConfig):
             raise HeadforgeError(f"shading must be learned or none, got {self.shading!r}")
         if self.init_points < 1 or self.max_points < self.init_points:
             raise HeadforgeError(f"need 1 <= init_points <= max_points, got {self.init_points}, {self.max_points}")
+        if self.upsample_spread < 0 or self.mouth_seed < 0:
+            raise HeadforgeError(f"upsample_spread and mouth_seed must be >= 0, got {self.upsample_spread}, {self.mouth_seed}")
