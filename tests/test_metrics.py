@@ -276,6 +276,8 @@ def test_landmark_scores_split_akd_by_face_region():
     np.testing.assert_allclose(s["akd_lips_px"], lips.mean())
     np.testing.assert_allclose(s["akd_px"], lips.sum() / 478)
     np.testing.assert_allclose(s["mouth_opening_error_px"], 2.0)
+    np.testing.assert_allclose(s["mouth_opening_avatar_px"] - s["mouth_opening_frame_px"], 2.0)  # the sign
+    np.testing.assert_allclose(s["mouth_opening_frame_px"], 10.0)
     for name in regions:
         if name != "lips":
             np.testing.assert_allclose(s[f"akd_{name}_px"], 0.0)

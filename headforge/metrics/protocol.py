@@ -112,13 +112,18 @@ def landmark_scores(pred: np.ndarray, truth: np.ndarray, by_region: bool = False
     """Per-frame (B,) scores of MediaPipe landmarks ``pred`` on the avatar's images against
     ``truth`` on the frames ((B, 478, 2) px, NaN where no face was found): AKD over all 478, the
     eye- and mouth-opening errors, and with ``by_region`` AKD per :func:`landmark_regions` region
-    (``akd_<region>_px``)."""
+    (``akd_<region>_px``) and the openings themselves (``<eye|mouth>_opening_<avatar|frame>_px``:
+    an error's sign, e.g. a mouth drawn closed)."""
     dist = np.linalg.norm(pred - truth, axis=-1)  # (B, 478)
+    eyes, mouths = (_openings(pred, EYELID_PAIRS), _openings(truth, EYELID_PAIRS)), \
+        (_openings(pred, MOUTH_PAIRS), _openings(truth, MOUTH_PAIRS))
     out = {"akd_px": dist.mean(-1),
-           "eye_opening_error_px": np.abs(_openings(pred, EYELID_PAIRS) - _openings(truth, EYELID_PAIRS)),
-           "mouth_opening_error_px": np.abs(_openings(pred, MOUTH_PAIRS) - _openings(truth, MOUTH_PAIRS))}
+           "eye_opening_error_px": np.abs(eyes[0] - eyes[1]),
+           "mouth_opening_error_px": np.abs(mouths[0] - mouths[1])}
     if by_region:
         out |= {f"akd_{name}_px": dist[:, idx].mean(-1) for name, idx in landmark_regions().items()}
+        out |= {"eye_opening_avatar_px": eyes[0], "eye_opening_frame_px": eyes[1],
+                "mouth_opening_avatar_px": mouths[0], "mouth_opening_frame_px": mouths[1]}
     return out
 
 
