@@ -102,6 +102,65 @@ def test_a_separate_albedo_network_colours_the_points_and_leaves_the_geometry_al
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.albedo_net.parameters())
 
 
+def test_row_adam_moves_only_the_frames_of_the_batch():
+    """The frames' optimiser (the authors' SparseAdam): the rows a loss touched take the steps
+    dense Adam takes on them alone; the other rows keep their values and zero moments."""
+    from headforge.avatars.base import RowAdam
+
+    frames = torch.nn.Parameter(torch.zeros(6, 4))
+    alone = torch.nn.Parameter(torch.zeros(2, 4))
+    opt, reference = RowAdam([frames], lr=0.01), torch.optim.Adam([alone], lr=0.01)
+    for step in range(3):
+        opt.zero_grad()
+        reference.zero_grad()
+        (1e-3 * (frames[[1, 4]] - 1).pow(2).sum()).backward()
+        (1e-3 * (alone - 1).pow(2).sum()).backward()
+        opt.step()
+        reference.step()
+    assert torch.allclose(frames.data[[1, 4]], alone.data, atol=1e-5)  # SparseAdam places eps a little differently
+    assert float(alone.data.min()) > 0.02  # three steps of about lr each, whatever the gradient's scale
+    untouched = [0, 2, 3, 5]
+    assert frames.data[untouched].abs().max() == 0
+    assert opt.state[frames]["exp_avg"][untouched].abs().max() == 0
+
+
+def test_the_head_model_regulariser_halves_at_the_authors_milestones():
+    """Epochs 10, 20, 30, 40 of 63 in the authors' code: fractions of the iterations here."""
+    from headforge.avatars.pointavatar.method import flame_factor
+
+    config = tiny_config(iterations=6300, flame_halvings=4, flame_halving_every=10 / 63)
+    assert [flame_factor(s, config) for s in (0, 999, 1000, 2000, 3999, 4000, 6299)] == \
+        [1.0, 1.0, 0.5, 0.25, 0.125, 0.0625, 0.0625]
+    assert flame_factor(6299, tiny_config(flame_halvings=0)) == 1.0
+    with pytest.raises(HeadforgeError, match="flame_halving"):
+        tiny_config(flame_halving_every=0).validate()
+
+
+def test_the_pseudo_ground_truth_comes_from_the_outer_surface_unless_asked(rendered, tiny_head):
+    """Points inside the canonical mouth take their skinning and blendshape targets from the lips
+    (FLAME has no mouth cavity), not from open-head's cavity vertices, which are all skinned to
+    the skull; ``pseudo_gt_inner`` restores the cavity vertices as targets."""
+    import numpy as np
+
+    from headforge.avatars import registry
+    from headforge.avatars.run import RunAssets
+
+    # the tiny head has no cavities: every 7th face vertex stands in for open-head's mouth cavity
+    tiny_head.regions["mouth_interior"] = np.asarray(tiny_head.regions["face"])[::7]
+    assets = RunAssets.from_dataset(rendered)
+    outer = registry.get("pointavatar").build(assets, tiny_config())
+    every = registry.get("pointavatar").build(assets, tiny_config(pseudo_gt_inner=True))
+    inner = outer.head.region("mouth_interior")
+    assert len(inner) > 10
+    on_inner = outer.canonical_vertices[inner]  # points exactly on the cavity vertices
+    assert torch.equal(every.nearest_canonical_vertices(on_inner), inner)
+    nearest = outer.nearest_canonical_vertices(on_inner)
+    assert not torch.isin(nearest, inner).any()
+    gap = (on_inner - outer.canonical_vertices[nearest]).norm(dim=-1)
+    best = torch.cdist(on_inner, outer.canonical_vertices[outer.target_vertices]).min(1).values
+    assert torch.allclose(gap, best, atol=1e-6)  # the nearest of the outer vertices, not just any
+
+
 def test_a_head_initialised_cloud_starts_on_the_canonical_head_model_surface(rendered):
     """init_cloud=head: every initial point lies on a triangle of the canonical head model
     (x_o = x_c, the offset starting at zero), spread over the surface rather than clumped."""

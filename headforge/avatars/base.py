@@ -172,6 +172,21 @@ FRAME_LR_SCALE = {"translation": 0.01, "root_pose": 0.1, "neck_pose": 0.1, "jaw_
 
 
 def frame_optimiser(avatar: Avatar, lr: float) -> torch.optim.Optimizer:
-    """The optimiser of the per-frame parameters during training (every method's)."""
+    """The optimiser of the per-frame parameters during training (NHA's: SGD, rates scaled per group)."""
     return torch.optim.SGD([{"params": [avatar.frames[k]], "lr": lr * scale} for k, scale in FRAME_LR_SCALE.items()])
+
+
+class RowAdam(torch.optim.SparseAdam):
+    """Adam over the rows (frames) of per-frame parameters (T, D) that the step's loss touched,
+    as a SparseAdam over embeddings: a frame outside the batch keeps its value and its moments,
+    where dense Adam's momentum would move every frame at every step. Each dense gradient is
+    turned into a sparse one of its non-zero rows before the step."""
+
+    def step(self, closure=None):
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is not None and not p.grad.is_sparse:
+                    rows = torch.nonzero(p.grad.flatten(1).abs().sum(1))[:, 0]
+                    p.grad = torch.sparse_coo_tensor(rows[None], p.grad[rows], p.shape, check_invariants=True).coalesce()
+        return super().step(closure)
 

@@ -52,12 +52,22 @@ class PointAvatarConfig(EngineConfig):
     lr: float = 1e-4
     lr_points: float = 1e-4
     lr_frames: float = 5e-4
+    # the training frames' expressions refined with their poses (the authors' code); quick: poses only
+    # (talking_bun AKD 4.45 -> 3.92 px; docs/pointavatar.md, deviation 16)
+    refine_expression: bool = True
     w_rgb: float = 1.0
     w_mask: float = 1.0
     w_ssim: float = 0.0  # a weight-free stand-in for the VGG term (no pretrained weights here)
     # the head-model regulariser on mean squared errors (the authors' code): E and P in metres per
     # unit coefficient, where their 10 x 10 x 100 on FLAME's x4 units is 1.6e5; W (weights) 1
     w_flame: float = 1.0
+    # the regulariser halves this many times, at every ``flame_halving_every`` of the iterations (the
+    # authors' code: at epochs 10, 20, 30, 40 of 63), so the images shape the deformer late in training
+    flame_halvings: int = 4
+    flame_halving_every: float = 10 / 63
+    # True: the pseudo ground truth may come from the head model's mouth and eye cavities too
+    # (headforge before 2026-12-05); False: from its outer surface, as FLAME's (docs/pointavatar.md)
+    pseudo_gt_inner: bool = False
     w_expr: float = 1.6e5
     w_pose: float = 1.6e5
     w_weights: float = 1.0
@@ -83,12 +93,15 @@ class PointAvatarConfig(EngineConfig):
         0.38 s at 5K points, 1.2 s at 20K, 10 s at 100K with these networks; the paper's 4.3 / 13 /
         43 s): at most 6400 points, 3000 iterations, the Eikonal term on 2000 + 2000 samples; the
         albedo from its own 3 x 64 network (deviation 12: AKD 4.93 -> 4.09 px on talking_bun,
-        3.60 -> 2.35 on talking_longhair, docs/pointavatar.md)."""
+        3.60 -> 2.35 on talking_longhair, docs/pointavatar.md); the head-model regulariser halved 4
+        times as the authors' code (talking_bun AKD 4.09 -> 3.71 px); the training frames' poses
+        refined by a row-wise Adam, their expressions kept (deviation 16, docs/pointavatar.md)."""
         return cls(iterations=3000, max_points=6400, upsample_every=500, prune_every=250, points_per_pixel=6,
                    albedo_width=64,
                    canonical_width=64, canonical_layers=4, canonical_skip=2, frequencies=4, deformer_width=64,
                    deformer_layers=3, shading_width=32, eikonal_samples=2000, lr=5e-4, lr_points=5e-4,
-                   val_every=500, checkpoint_every=250, tto_steps=50, tto_photometric_steps=0)
+                   val_every=500, checkpoint_every=250, tto_steps=50, tto_photometric_steps=0,
+                   refine_expression=False)
 
     @classmethod
     def paper(cls) -> "PointAvatarConfig":
@@ -116,5 +129,8 @@ class PointAvatarConfig(EngineConfig):
             raise HeadforgeError(f"shading must be learned or none, got {self.shading!r}")
         if self.init_points < 1 or self.max_points < self.init_points:
             raise HeadforgeError(f"need 1 <= init_points <= max_points, got {self.init_points}, {self.max_points}")
+        if self.flame_halvings < 0 or self.flame_halving_every <= 0:
+            raise HeadforgeError(f"flame_halvings must be >= 0 and flame_halving_every > 0, got "
+                                 f"{self.flame_halvings}, {self.flame_halving_every}")
         if self.upsample_spread < 0 or self.mouth_seed < 0:
             raise HeadforgeError(f"upsample_spread and mouth_seed must be >= 0, got {self.upsample_spread}, {self.mouth_seed}")

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from headforge.avatars.base import Method, Stage, frame_optimiser
+from headforge.avatars.base import Method, RowAdam, Stage
 from headforge.avatars.pointavatar.config import PointAvatarConfig
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
@@ -38,6 +38,13 @@ def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> t
     p = (P - avatar.vertex_posedirs[nearest]).pow(2).mean()
     w = (c.W - avatar.vertex_weights[nearest]).pow(2).mean()
     return config.w_expr * e + config.w_pose * p + config.w_weights * w
+
+
+def flame_factor(step: int, config: PointAvatarConfig) -> float:
+    """The head-model regulariser's multiple at training step ``step``: halved at every
+    ``flame_halving_every`` of the iterations, ``flame_halvings`` times (the authors' milestones)."""
+    passed = int(step // (config.flame_halving_every * config.iterations))
+    return 0.5 ** min(passed, config.flame_halvings)
 
 
 def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: torch.Generator | None = None) -> torch.Tensor:
@@ -126,7 +133,7 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
             out["normal_points"] = config.w_normal_points * point_normal_term(
                 pixels, r.point_normals, r.max_weight > 0.5, batch["gt_normals"], known)
     c = r.canonical
-    out["flame"] = config.w_flame * head_model_term(avatar, c, config)
+    out["flame"] = config.w_flame * flame_factor(int(avatar.train_steps), config) * head_model_term(avatar, c, config)
     out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()
     gen = torch.Generator().manual_seed(config.seed * 7919 + int(avatar.train_steps))
     avatar.train_steps += 1
@@ -152,7 +159,10 @@ class PointAvatarMethod(Method):
         nets = [p for n, p in avatar.named_parameters() if not n.startswith(("frames.", "points"))]
         return {"networks": torch.optim.Adam(nets, lr=config.lr),
                 "points": torch.optim.Adam([avatar.points], lr=config.lr_points),
-                "frames": frame_optimiser(avatar, config.lr_frames)}
+                # the authors' SparseAdam (one rate for expression, poses and camera): SGD at
+                # their rate left the frames where the tracker put them (docs/pointavatar.md, deviation 7)
+                "frames": RowAdam([p for k, p in avatar.frames.items() if config.refine_expression or k != "expression"],
+                                  lr=config.lr_frames)}
 
     def losses(self, avatar, batch, K, config, stage, params=None):
         return losses(avatar, batch, K, config, stage, params)

@@ -37,6 +37,7 @@ from headforge.render.shading import lambert, sh_shading
 
 CANONICAL_JAW = 0.4  # rad, the canonical pose's jaw opening (authors' code)
 SCALE = 0.15  # m: the networks' unit (a head is about +-1 of it around its centre)
+INNER_REGIONS = ("mouth_interior", "eye_cavities")  # head-model regions FLAME's surface does not have
 MOUTH_DEPTH = 0.015  # m: how far behind the lips' opening the seeded mouth points reach
 
 
@@ -91,6 +92,14 @@ class PointAvatarModel(Avatar):
             out = self.head(shape=self.shape, expression=self.canonical_expression, jaw_pose=jaw)
             A_c, p_c = self.head.skinning_transforms(self.shape, self.canonical_expression, {"jaw_pose": jaw})
         self.register_buffer("canonical_vertices", out.vertices[0], persistent=False)  # derived
+        # the vertices the pseudo ground truth is taken from: FLAME's outer surface has no mouth or eye
+        # cavity; open-head's cavity, skinned to the skull near the lips, took the points in the
+        # canonical (open) mouth and pinned the tongue's and lower teeth's place to the skull (docs/pointavatar.md)
+        inner = torch.zeros(len(out.vertices[0]), dtype=torch.bool)
+        if not config.pseudo_gt_inner:
+            for name in set(INNER_REGIONS) & set(self.head.region_names):
+                inner[self.head.region(name)] = True
+        self.register_buffer("target_vertices", torch.nonzero(~inner)[:, 0], persistent=False)  # derived
         self.register_buffer("canonical_transforms", self._with_static_bone(A_c)[0], persistent=False)
         self.register_buffer("canonical_pose_feature", p_c[0], persistent=False)
         self.register_buffer("centre", out.vertices[0].mean(0), persistent=False)
@@ -142,14 +151,18 @@ class PointAvatarModel(Avatar):
 
     def nearest_canonical_vertices(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
-        metres): a k-d tree built once on the CPU, chunked distances on a GPU."""
+        metres) among ``target_vertices`` (the outer surface unless ``pseudo_gt_inner``): a k-d
+        tree built once on the CPU, chunked distances on a GPU."""
+        targets = self.canonical_vertices[self.target_vertices]
         if points.device.type == "cpu":
             if self._vertex_tree is None:
                 from scipy.spatial import cKDTree
 
-                self._vertex_tree = cKDTree(self.canonical_vertices.numpy())
-            return torch.from_numpy(self._vertex_tree.query(points.detach().numpy())[1]).long()
-        return torch.cat([torch.cdist(p, self.canonical_vertices).argmin(1) for p in points.detach().split(chunk)])
+                self._vertex_tree = cKDTree(targets.numpy())
+            nearest = torch.from_numpy(self._vertex_tree.query(points.detach().numpy())[1]).long()
+        else:
+            nearest = torch.cat([torch.cdist(p, targets).argmin(1) for p in points.detach().split(chunk)])
+        return self.target_vertices[nearest]
 
     @staticmethod
     def _with_static_bone(A: torch.Tensor) -> torch.Tensor:
