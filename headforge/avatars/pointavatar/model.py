@@ -153,14 +153,14 @@ class PointAvatarModel(Avatar):
         """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
         metres) among ``target_vertices`` (the outer surface unless ``pseudo_gt_inner``): a k-d
         tree built once on the CPU, chunked distances on a GPU."""
-        targets = self.canonical_vertices[self.target_vertices]
         if points.device.type == "cpu":
             if self._vertex_tree is None:
                 from scipy.spatial import cKDTree
 
-                self._vertex_tree = cKDTree(targets.numpy())
+                self._vertex_tree = cKDTree(self.canonical_vertices[self.target_vertices].numpy())
             nearest = torch.from_numpy(self._vertex_tree.query(points.detach().numpy())[1]).long()
         else:
+            targets = self.canonical_vertices[self.target_vertices]
             nearest = torch.cat([torch.cdist(p, targets).argmin(1) for p in points.detach().split(chunk)])
         return self.target_vertices[nearest]
 
