@@ -124,6 +124,21 @@ def test_row_adam_moves_only_the_frames_of_the_batch():
     assert opt.state[frames]["exp_avg"][untouched].abs().max() == 0
 
 
+def test_quick_refines_the_frames_poses_but_not_their_expressions(rendered):
+    """refine_expression false (quick): the frames' optimiser holds every per-frame tensor but the
+    expressions; true (paper, the authors'): all of them."""
+    from headforge.avatars import registry
+    from headforge.avatars.run import RunAssets
+
+    method = registry.get("pointavatar")
+    avatar = method.build(RunAssets.from_dataset(rendered), tiny_config())
+    for refine, expected in ((False, len(avatar.frames) - 1), (True, len(avatar.frames))):
+        held = {id(p) for g in method.optimisers(avatar, tiny_config(refine_expression=refine))["frames"].param_groups
+                for p in g["params"]}
+        assert len(held) == expected
+        assert (id(avatar.frames["expression"]) in held) == refine
+
+
 def test_the_head_model_regulariser_halves_at_the_authors_milestones():
     """Epochs 10, 20, 30, 40 of 63 in the authors' code: fractions of the iterations here."""
     from headforge.avatars.pointavatar.method import flame_factor
