@@ -59,3 +59,20 @@ def test_ray_backend(tmp_path):
     assert [r.status for r in result.items] == ["ok", "failed", "ok"]
     assert (tmp_path / "b" / "out.txt").read_text() == "25"
     assert result.items[1].error == "negative input -1"
+
+
+def test_worker_processes_isolate_items_like_one_process(tmp_path):
+    items = [("a", 2), ("bad", -1), ("b", 3), ("crash", 13)]
+    lines = []
+    result = run_batch(items, _square, tmp_path, workers=2, log=lines.append)
+    assert [r.status for r in result.items] == ["ok", "failed", "ok", "failed"]  # in the items' order
+    assert result.items[1].error == "negative input -1" and result.items[3].error == "ZeroDivisionError: unlucky"
+    assert (tmp_path / "b" / "out.txt").read_text() == "9" and len(lines) == 4
+    assert not list(tmp_path.glob(".*.partial"))
+    assert json.loads((tmp_path / "summary.json").read_text())["backend"] == "2 processes"
+    again = run_batch(items, _square, tmp_path, workers=2, log=lambda m: None)
+    assert [r.status for r in again.items] == ["skipped", "failed", "skipped", "failed"]
+    with pytest.raises(HeadforgeError, match="workers"):
+        run_batch(items, _square, tmp_path, workers=0)
+    with pytest.raises(HeadforgeError, match="not both"):
+        run_batch(items, _square, tmp_path, workers=2, ray=True)

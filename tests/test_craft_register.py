@@ -168,7 +168,8 @@ def test_register_command_fails_cleanly(tmp_path):
     assert runner.invoke(craft.app, ["register", str(only_bad), "-o", str(tmp_path / "m"), "--preset", "slow"]).exit_code == 1
     assert runner.invoke(craft.app, ["register", str(only_bad), "-o", str(tmp_path / "m"), "--map-size", "100"]).exit_code == 1
     empty = tmp_path / "none"
-    empty.mkdir()
+    (empty / "id000.partial").mkdir(parents=True)  # a scan folder that `craft scans` was killed writing
+    (empty / "id000.partial" / "scan.ply").write_text("ply\n")
     r = runner.invoke(craft.app, ["register", str(empty), "-o", str(tmp_path / "m3")])
     assert r.exit_code == 1 and "holds no scans" in r.output
 

@@ -37,6 +37,23 @@ def test_clean_set_is_fast_and_labelled(tmp_path):
     assert np.abs(expr["head"] - gt["head"]).max() > 2e-3  # the expression scan differs from the neutral one
 
 
+def test_worker_processes_make_the_same_set(tmp_path):
+    from headforge.craft.scans import ScanSetConfig, generate_scans
+
+    cfg = ScanSetConfig(n=2, source="open-head", harder=False, expression_every=2, hair_voxel_m=0.009, sheet_px=48)
+    serial = generate_scans(tmp_path / "serial", cfg, log=lambda m: None)
+    lines = []
+    parallel = generate_scans(tmp_path / "parallel", cfg, log=lines.append, workers=2)
+    assert parallel == serial and len(lines) == 3 and not list((tmp_path / "parallel").glob("*.partial"))
+    for key in serial:
+        a, b = (np.load(tmp_path / side / key / "gt.npz") for side in ("serial", "parallel"))
+        assert np.array_equal(a["head"], b["head"]) and np.array_equal(a["labels"], b["labels"])
+        assert ((tmp_path / "serial" / key / "gt.json").read_text()
+                == (tmp_path / "parallel" / key / "gt.json").read_text())
+    with pytest.raises(HeadforgeError, match="--workers"):
+        generate_scans(tmp_path / "bad", cfg, workers=0)
+
+
 @pytest.mark.slow  # ~2 min on 2 busy cores (the remeshed variant)
 def test_generated_set_ground_truth_and_resume(tmp_path):
     from headforge.craft.scans import (

@@ -15,7 +15,8 @@ returns. One item's exception never stops the others. With ``keep_partial`` a pa
 left by a killed run is handed to ``fn`` again (for items that resume their own work, e.g.
 training); it is still removed when ``fn`` raises. With ``ray=True`` each item is a Ray task
 (a local runtime, or the cluster at ``ray_address``) asking for ``cpus_per_item`` CPUs and
-``gpus_per_item`` GPUs; ``fn`` must then be picklable (a module-level function).
+``gpus_per_item`` GPUs; with ``workers=N`` (N > 1) the items run in N local processes (for a
+many-core machine without Ray). Both need ``fn`` picklable (a module-level function).
 """
 
 from __future__ import annotations
@@ -203,16 +204,51 @@ def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int 
             ray.shutdown()
 
 
+def _worker_threads(threads: int) -> None:
+    """Process-pool initializer: cap the numeric libraries' threads before they are imported, so that N
+    workers on N cores do not each start a thread per core."""
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[name] = str(threads)
+
+
+def _process_results(fn, todo, output: Path, workers: int, cpus: float, keep_partial: bool, log) -> list[ItemResult]:
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    # spawn, not fork: a forked child of a process that already ran torch/OpenMP threads can deadlock
+    context = multiprocessing.get_context("spawn")
+    results = []
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_threads,
+                             initargs=(max(1, int(cpus)),)) as pool:
+        futures = {pool.submit(run_item, fn, key, payload, str(output), keep_partial): key for key, payload in todo}
+        for future in as_completed(futures):
+            key = futures[future]
+            try:
+                results.append(future.result())
+            except BrokenProcessPool as exc:  # a worker died (killed, out of memory): its items fail, not the batch
+                results.append(ItemResult(key, "failed", error=f"worker process died: {exc}"))
+                if not keep_partial:
+                    shutil.rmtree(output / f".{key}.partial", ignore_errors=True)
+            r = results[-1]
+            log(f"[{len(results)}/{len(futures)}] {key}: {r.status}" + (f" ({r.error})" if r.error else f" in {r.seconds:.1f} s"))
+    return results
+
+
 def run_batch(items: Sequence[tuple[str, Any]], fn: Callable[[str, Any, Path], dict], output: str | Path, *,
-              ray: bool = False, ray_address: str | None = None, num_cpus: int | None = None,
+              ray: bool = False, ray_address: str | None = None, num_cpus: int | None = None, workers: int = 1,
               cpus_per_item: float = 1.0, gpus_per_item: float = 0.0, keep_partial: bool = False,
               columns: Sequence[str] = (), resume: bool = True, connect_timeout: float = CONNECT_TIMEOUT_S,
               log: Callable[[str], None] = print) -> BatchResult:
     """Run ``fn`` over ``items`` ((key, payload) pairs) into ``output``; see the module doc.
     ``num_cpus``: the CPUs of a local Ray runtime (default: the machine's); ``columns``: the
-    metrics shown in summary.md."""
+    metrics shown in summary.md; ``workers``: local processes (1: in this process)."""
     if cpus_per_item < 0 or gpus_per_item < 0:
         raise HeadforgeError("CPUs and GPUs per item must be >= 0")
+    if workers < 1:
+        raise HeadforgeError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and (ray or ray_address):
+        raise HeadforgeError("choose Ray or local worker processes, not both")
     start = time.perf_counter()
     output = Path(output)
     keys = [k for k, _ in items]
@@ -234,6 +270,9 @@ def run_batch(items: Sequence[tuple[str, Any]], fn: Callable[[str, Any, Path], d
             for r in _ray_results(fn, todo, output, ray_address, num_cpus, log, cpus_per_item, gpus_per_item,
                                   keep_partial, connect_timeout):
                 results[r.key] = r
+        elif workers > 1 and len(todo) > 1:
+            for r in _process_results(fn, todo, output, min(workers, len(todo)), cpus_per_item, keep_partial, log):
+                results[r.key] = r
         else:
             for i, (key, payload) in enumerate(todo):
                 r = run_item(fn, key, payload, output, keep_partial)
@@ -246,7 +285,8 @@ def run_batch(items: Sequence[tuple[str, Any]], fn: Callable[[str, Any, Path], d
     _atomic_json(output / "summary.json", {"items": [asdict(r) for r in ordered.items],
                                            "ok": len(ordered.ok), "failed": len(ordered.failed),
                                            "skipped": len(ordered.items) - len(ran),
-                                           "backend": "ray" if (ray or ray_address) else "in-process",
+                                           "backend": "ray" if (ray or ray_address) else
+                                           f"{workers} processes" if workers > 1 else "in-process",
                                            "wall_seconds": ordered.wall_seconds,
                                            "item_seconds": ordered.item_seconds})
     tmp = output / "summary.md.partial"

@@ -29,6 +29,7 @@ ADDRESS_OPT = typer.Option(None, "--ray-address", help="an existing Ray cluster,
 CPUS_OPT = typer.Option(1.0, "--cpus-per-item", help="CPUs per item: Ray's request, and the item's torch threads")
 GPUS_OPT = typer.Option(0.0, "--gpus-per-item", help="GPUs per item (Ray's request; fractions share a GPU)")
 RAY_CPUS_OPT = typer.Option(None, "--ray-cpus", help="CPUs of a local Ray runtime (default: the machine's)")
+WORKERS_OPT = typer.Option(1, "--workers", help="run N items at a time in local processes (no Ray needed)")
 
 
 def _logger(output: Path, key: str):
@@ -100,7 +101,7 @@ def list_datasets(folder: Path) -> list[tuple[str, Path]]:
 
 
 def _run(items, fn, output: Path, columns, ray: bool, ray_address, cpus: float, gpus: float, ray_cpus,
-         keep_partial: bool) -> None:
+         keep_partial: bool, workers: int = 1) -> None:
     from headforge.batch import run_batch, summary_table
 
     if cpus <= 0:
@@ -108,7 +109,7 @@ def _run(items, fn, output: Path, columns, ray: bool, ray_address, cpus: float, 
     if gpus < 0:
         raise HeadforgeError(f"--gpus-per-item must be >= 0, got {gpus:g}")
     result = run_batch(items, fn, output, ray=ray, ray_address=ray_address, num_cpus=ray_cpus, cpus_per_item=cpus,
-                       gpus_per_item=gpus, keep_partial=keep_partial, columns=columns,
+                       gpus_per_item=gpus, keep_partial=keep_partial, columns=columns, workers=workers,
                        log=lambda m: console.print(m, markup=False, highlight=False))
     typer.echo(summary_table(result, columns))
     skipped = sum(r.status == "skipped" for r in result.items)
@@ -130,7 +131,7 @@ def track(videos: Path = typer.Argument(..., help="folder of videos (mp4, mov, .
           photometric: bool = typer.Option(False, help="refine the fit against the pixels (slower)"),
           overlay: bool = typer.Option(True, help="write overlay.mp4 in each dataset"),
           ray: bool = RAY_OPT, ray_address: Optional[str] = ADDRESS_OPT, cpus_per_item: float = CPUS_OPT,
-          gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT) -> None:
+          gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT, workers: int = WORKERS_OPT) -> None:
     """Track every video of a folder (headforge track per video) into OUT/NAME/, with OUT/summary.md.
     A failing video is reported and never stops the others; a re-run skips the finished ones."""
     from headforge.track.pipeline import TrackOptions
@@ -140,7 +141,7 @@ def track(videos: Path = typer.Argument(..., help="folder of videos (mp4, mov, .
     options.validate()  # a bad option fails once, before any item
     items = [(k, {"video": str(p.resolve()), "options": asdict(options), "cpus": cpus_per_item})
              for k, p in list_videos(videos)]
-    _run(items, track_item, output, TRACK_COLUMNS, ray, ray_address, cpus_per_item, gpus_per_item, ray_cpus, False)
+    _run(items, track_item, output, TRACK_COLUMNS, ray, ray_address, cpus_per_item, gpus_per_item, ray_cpus, False, workers)
 
 
 @app.command("fit")
@@ -153,7 +154,7 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
         device: str = typer.Option("auto", help="auto, cpu or cuda[:N] (on Ray: the GPU Ray gives the item)"),
         set_: Optional[list[str]] = typer.Option(None, "--set", metavar="FIELD=VALUE", help="override a config field"),
         ray: bool = RAY_OPT, ray_address: Optional[str] = ADDRESS_OPT, cpus_per_item: float = CPUS_OPT,
-        gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT) -> None:
+        gpus_per_item: float = GPUS_OPT, ray_cpus: Optional[int] = RAY_CPUS_OPT, workers: int = WORKERS_OPT) -> None:
     """Train one avatar per dataset of a folder (headforge fit per dataset) into OUT/NAME/, with
     OUT/summary.md. A killed batch resumes its unfinished runs where they stopped."""
     from headforge.avatars import registry
@@ -167,4 +168,4 @@ def fit(method: str = typer.Argument(..., help="avatar method: nha or pointavata
     payload = {"method": method, "preset": preset, "iterations": iterations, "resolution": resolution,
                "set": set_ or [], "device": device, "cpus": cpus_per_item}
     items = [(k, {**payload, "dataset": str(p.resolve())}) for k, p in list_datasets(datasets)]
-    _run(items, fit_item, output, FIT_COLUMNS, ray, ray_address, cpus_per_item, gpus_per_item, ray_cpus, True)
+    _run(items, fit_item, output, FIT_COLUMNS, ray, ray_address, cpus_per_item, gpus_per_item, ray_cpus, True, workers)

@@ -23,13 +23,14 @@ def scans(output: Path = typer.Option(..., "-o", "--output", help="folder to wri
           n: int = typer.Option(8, "--n", help="number of identities (each has a neutral scan; every 3rd an expression scan too)"),
           seed: int = typer.Option(0, "--seed", help="random seed"),
           harder: bool = typer.Option(True, help="cycle the harder variants (remeshed, noisy, holes, out-of-span)"),
-          voxel_mm: float = typer.Option(3.0, help="hair volume voxel size (mm)")) -> None:
+          voxel_mm: float = typer.Option(3.0, help="hair volume voxel size (mm)"),
+          workers: int = typer.Option(1, "--workers", help="local processes making scans (one thread each)")) -> None:
     """Generate head scans from anny identities with hair styles and exact ground truth."""
     from headforge.craft.scans import ScanSetConfig, generate_scans
 
     try:
         cfg = ScanSetConfig(n=n, seed=seed, harder=harder, hair_voxel_m=voxel_mm / 1000)
-        keys = generate_scans(output, cfg, log=typer.echo)
+        keys = generate_scans(output, cfg, log=typer.echo, workers=workers)
     except HeadforgeError as exc:
         _fail(exc)
     typer.echo(f"{len(keys)} scans in {output} (contact sheet: {output / 'contact_sheet.png'})")
@@ -48,6 +49,8 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
              steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
              ray: bool = typer.Option(False, "--ray", help="run the scans as tasks on a local Ray runtime"),
              ray_address: str | None = typer.Option(None, "--ray-address", help="Ray cluster address (implies --ray)"),
+             workers: int = typer.Option(1, "--workers", help="local processes registering scans (one thread each; "
+                                                               "for a many-core machine without Ray)"),
              model: str = typer.Option("open-head", "--model", "-m", help="open-head or flame"),
              flame_dir: str | None = typer.Option(None, "--flame-dir", help="folder with FLAME's generic_model.pkl")) -> None:
     """Register a folder of scans (resumable; one bad scan never stops the rest)."""
@@ -69,7 +72,7 @@ def register(scans: Path = typer.Argument(..., help="folder of scans: generated 
 
         config_for(ItemOptions(**opts))  # bad preset/ablation: fail before any work
         result = run_batch([(k, {"path": p, **opts}) for k, p in items], register_item, output,
-                           ray=ray, ray_address=ray_address, log=typer.echo)
+                           ray=ray, ray_address=ray_address, workers=workers, log=typer.echo)
     except HeadforgeError as exc:
         _fail(exc)
     typer.echo(summary_table(result, ["face_med_mm", "hair_med_mm", "s2r_med_mm", "edge_ratio", "lmk_mm", "roundtrip_mm"]))

@@ -88,7 +88,7 @@ def list_scans(folder: str | Path) -> list[tuple[str, str]]:
         raise HeadforgeError(f"no scan folder at {folder}")
     items = []
     for p in sorted(folder.iterdir()):
-        if p.name.startswith((".", "_")):
+        if p.name.startswith((".", "_")) or p.name.endswith(".partial"):  # a scan still being written (or killed)
             continue
         if p.is_dir() and (p / "scan.ply").exists():
             items.append((p.name, str(p)))

@@ -502,24 +502,50 @@ def write_png(path: Path, image: np.ndarray) -> None:
     tmp.replace(path)
 
 
-def generate_scans(output: str | Path, config: ScanSetConfig, log=print) -> list[str]:
-    """Write a scan set (resumable: finished scan folders are kept) and its contact sheet."""
+_WORKER_GENERATOR: ScanGenerator | None = None
+
+
+def _write_one(config: ScanSetConfig, spec: ScanSpec, folder: str) -> int:
+    """Worker-process body of :func:`generate_scans`: one scan, with the process's own generator."""
+    global _WORKER_GENERATOR
+    if _WORKER_GENERATOR is None:
+        torch.set_num_threads(1)
+        _WORKER_GENERATOR = ScanGenerator(config)
+    scan = _WORKER_GENERATOR.make(spec)
+    write_scan(Path(folder), spec, scan)
+    return len(scan["vertices"])
+
+
+def generate_scans(output: str | Path, config: ScanSetConfig, log=print, workers: int = 1) -> list[str]:
+    """Write a scan set (resumable: finished scan folders are kept) and its contact sheet.
+    ``workers`` > 1 makes the scans in that many processes (one thread each); the set is the same."""
     config.validate()
+    if workers < 1:
+        raise HeadforgeError(f"--workers must be >= 1, got {workers}")
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     gen = ScanGenerator(config)
     specs = scan_specs(gen.model, config)
-    keys = []
-    for i, spec in enumerate(specs):
-        folder = output / spec.key
-        if (folder / "gt.json").exists():
-            keys.append(spec.key)
-            continue
-        scan = gen.make(spec)
-        write_scan(folder, spec, scan)
-        keys.append(spec.key)
-        log(f"[{i + 1}/{len(specs)}] {spec.key}: {spec.hair_style}, {spec.variant}"
-            + (f", {'+'.join(spec.expression)}" if spec.expression else "") + f", {len(scan['vertices'])} vertices")
+    keys = [spec.key for spec in specs]
+    todo = [spec for spec in specs if not (output / spec.key / "gt.json").exists()]
+
+    def logged(done: int, spec: ScanSpec, n_vertices: int) -> None:
+        log(f"[{done}/{len(todo)}] {spec.key}: {spec.hair_style}, {spec.variant}"
+            + (f", {'+'.join(spec.expression)}" if spec.expression else "") + f", {n_vertices} vertices")
+
+    if workers > 1 and len(todo) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_write_one, config, spec, str(output / spec.key)): spec for spec in todo}
+            for done, future in enumerate(as_completed(futures), 1):
+                logged(done, futures[future], future.result())
+    else:
+        for done, spec in enumerate(todo, 1):
+            scan = gen.make(spec)
+            write_scan(output / spec.key, spec, scan)
+            logged(done, spec, len(scan["vertices"]))
     index = {"scans": keys, "config": asdict(config), "labels": LABELS, "hair_styles": list(HAIR_STYLES),
              "variants": list(VARIANTS)}
     tmp = output / "index.json.partial"
