@@ -18,9 +18,11 @@ For every held-out generated scan (``headforge craft scans``; harder variants in
 - a hair-transfer sheet between the first two scans' frontal completions.
 
 Writes ``OUT/<scan>/<observation>/`` (observation file, picture.png, scores.json),
-``OUT/results.json``, ``OUT/table.md``; prints one JSON line of figures at the end.
+``OUT/<scan>/scan_result.json`` (a finished scan: a re-run with the same settings skips it),
+``OUT/results.json``, ``OUT/table.md``; prints one JSON line of figures at the end. ``--workers N``
+fits N scans at a time in separate processes (``--threads`` torch threads each).
 
-    python benchmarks/bench_craft_fit.py --run RUN --scans HELD_SCANS -o OUT
+    python benchmarks/bench_craft_fit.py --run RUN --scans HELD_SCANS -o OUT [--workers 8 --threads 1]
 """
 
 from __future__ import annotations
@@ -87,60 +89,32 @@ def main() -> None:
     ap.add_argument("--steps-scale", type=float, default=1.0, help="multiply every optimisation step count")
     ap.add_argument("--full", action="store_true", help="also fit the whole scans (registration + W+)")
     ap.add_argument("--no-partial", action="store_true", help="only the full-scan fits (with --full)")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="torch threads per process")
+    ap.add_argument("--workers", type=int, default=1, help="scans fitted at a time, one process each")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    opts = F.FitOptions(preset=args.preset, steps_scale=args.steps_scale)
-    config = F.invert_config(opts)
-    models = {m: F.load_model(args.run, m) for m in METHODS}
-    base = models["bare"]
-    pcfg = F._partial_config(base, opts)
     scans = sorted(p for p in Path(args.scans).iterdir() if (p / "scan.ply").is_file())[: args.limit]
     if not scans:
         raise SystemExit(f"error: no generated scans in {args.scans}")
-    records, fit_seconds, full_records = [], [], []
-    faces = base.template.faces.numpy()
-    for si, scan_dir in enumerate(scans):
-        scan, spec, gt = load_generated(scan_dir)
-        for name, obs, cam, depth in ([] if args.no_partial else observations(scan_dir, scan, gt, out / scan_dir.name, args.size, args.side_yaw, args.cloud)):
-            t0 = time.perf_counter()
-            try:
-                reg = register_partial(base.template, obs, pcfg)
-            except Exception as exc:  # a failed observation is recorded, never silently dropped
-                records.append({"scan": scan_dir.name, "observation": name, "error": str(exc)})
-                print(f"{scan_dir.name} {name}: FAILED {exc}", flush=True)
-                continue
-            pm, mask = partial_map(reg, base.duv, base.resolution)
-            seconds_reg = time.perf_counter() - t0
-            to_scan = to_scan_frame(obs, cam)
-            regions = {"observed": lambda p, lab, c=cam, d=depth: visible(p, c, d),
-                       "unseen": lambda p, lab, c=cam, d=depth: ~visible(p, c, d),
-                       "unseen_back_hair": lambda p, lab, c=cam, d=depth: ~visible(p, c, d) & np.isin(lab, (2, 3))}
-            rec = {"scan": scan_dir.name, "observation": name, "hair_style": spec["hair_style"], "variant": spec["variant"],
-                   "expression": bool(spec["expression"]), "points": len(obs.points), "density": reg.density,
-                   "observed_texels": float(mask.mean()), "face_coverage": reg.fit.face_coverage,
-                   "seconds_registration": seconds_reg, "methods": {}}
-            meshes = {}
-            for m, model in models.items():
-                fr = F.fit_map(model, pm, mask, config, opts.noise, opts.seed)
-                v = F.mesh_of(model, fr.map_m, reg.fit.alignment.params, pcfg.register.smooth_iterations)
-                scores = F.completion_scores(to_scan(reg.fit.alignment, v), faces, scan.vertices, scan.faces, gt["labels"], regions)
-                rec["methods"][m] = {"scores": scores, "seconds_latent": fr.seconds}
-                meshes[m] = v
-                if m == "stylegan2" and name == "front":
-                    _write_fit_folder(out / scan_dir.name / name / "stylegan2_fit", model, fr, reg)
-            fit_seconds.append(seconds_reg + rec["methods"]["stylegan2"]["seconds_latent"])
-            _picture(out / scan_dir.name / name / "picture.png", reg, meshes, faces, scan, obs, cam, base)
-            (out / scan_dir.name / name / "scores.json").write_text(json.dumps(rec, indent=1))
-            records.append(rec)
-            line = "  ".join(f"{m} {rec['methods'][m]['scores']['unseen']['chamfer_mm']:.2f}/"
-                             f"{rec['methods'][m]['scores']['observed']['chamfer_mm']:.2f}" for m in METHODS)
-            print(f"[{si + 1}/{len(scans)}] {scan_dir.name} {name} ({spec['hair_style']}, {spec['variant']}): "
-                  f"unseen/observed Chamfer mm  {line}  ({fit_seconds[-1]:.0f} s)", flush=True)
-        if args.full:
-            full_records.append(_full_fit(scan_dir, models, opts, config, out))
+    settings = {k: v for k, v in vars(args).items() if k not in ("limit", "workers", "threads", "output", "scans")}
+    done = {s.name: _done(out / s.name, settings) for s in scans}
+    todo = [s for s in scans if done[s.name] is None]
+    print(f"{len(scans) - len(todo)} of {len(scans)} scans done earlier (resumed); {len(todo)} to fit", flush=True)
+    if args.workers > 1 and len(todo) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(min(args.workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(fit_scan, s, vars(args), out): s for s in todo}
+            for future in as_completed(futures):
+                done[futures[future].name] = future.result()
+    else:
+        for s in todo:
+            done[s.name] = fit_scan(s, vars(args), out)
+    records = [r for s in scans for r in done[s.name]["records"]]
+    fit_seconds = [t for s in scans for t in done[s.name]["fit_seconds"]]
+    full_records = [done[s.name]["full"] for s in scans if done[s.name]["full"]]
     hair_sheet = _hair_transfer(out, scans)
     summary = _summary(records, full_records, fit_seconds)
     summary["hair_transfer_sheet"] = str(hair_sheet) if hair_sheet else None
@@ -148,6 +122,80 @@ def main() -> None:
     (out / "table.md").write_text(_table(records, full_records))
     print(_table(records, full_records))
     print(json.dumps(summary))
+
+
+SCAN_RESULT = "scan_result.json"  # a finished scan: its records, with the settings they were made with
+_MODELS: dict = {}
+
+
+def _done(folder: Path, settings: dict) -> dict | None:
+    """A scan finished by an earlier run with the same settings (resume), else None."""
+    try:
+        data = json.loads((folder / SCAN_RESULT).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return data if data.get("settings") == settings else None
+
+
+def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
+    """Every observation of one scan (and its full fit with --full): {records, fit_seconds, full},
+    also written to OUT/<scan>/scan_result.json (last, so a killed scan is redone)."""
+    torch.set_num_threads(args["threads"])
+    opts = F.FitOptions(preset=args["preset"], steps_scale=args["steps_scale"])
+    config = F.invert_config(opts)
+    if not _MODELS:
+        _MODELS.update({m: F.load_model(args["run"], m) for m in METHODS})
+    models = _MODELS
+    base = models["bare"]
+    pcfg = F._partial_config(base, opts)
+    faces = base.template.faces.numpy()
+    records, fit_seconds = [], []
+    scan, spec, gt = load_generated(scan_dir)
+    obs_list = [] if args["no_partial"] else observations(scan_dir, scan, gt, out / scan_dir.name, args["size"],
+                                                          args["side_yaw"], args["cloud"])
+    for name, obs, cam, depth in obs_list:
+        t0 = time.perf_counter()
+        try:
+            reg = register_partial(base.template, obs, pcfg)
+        except Exception as exc:  # a failed observation is recorded, never silently dropped
+            records.append({"scan": scan_dir.name, "observation": name, "error": str(exc)})
+            print(f"{scan_dir.name} {name}: FAILED {exc}", flush=True)
+            continue
+        pm, mask = partial_map(reg, base.duv, base.resolution)
+        seconds_reg = time.perf_counter() - t0
+        to_scan = to_scan_frame(obs, cam)
+        regions = {"observed": lambda p, lab, c=cam, d=depth: visible(p, c, d),
+                   "unseen": lambda p, lab, c=cam, d=depth: ~visible(p, c, d),
+                   "unseen_back_hair": lambda p, lab, c=cam, d=depth: ~visible(p, c, d) & np.isin(lab, (2, 3))}
+        rec = {"scan": scan_dir.name, "observation": name, "hair_style": spec["hair_style"], "variant": spec["variant"],
+               "expression": bool(spec["expression"]), "points": len(obs.points), "density": reg.density,
+               "observed_texels": float(mask.mean()), "face_coverage": reg.fit.face_coverage,
+               "seconds_registration": seconds_reg, "methods": {}}
+        meshes = {}
+        for m, model in models.items():
+            fr = F.fit_map(model, pm, mask, config, opts.noise, opts.seed)
+            v = F.mesh_of(model, fr.map_m, reg.fit.alignment.params, pcfg.register.smooth_iterations)
+            scores = F.completion_scores(to_scan(reg.fit.alignment, v), faces, scan.vertices, scan.faces, gt["labels"], regions)
+            rec["methods"][m] = {"scores": scores, "seconds_latent": fr.seconds}
+            meshes[m] = v
+            if m == "stylegan2" and name == "front":
+                _write_fit_folder(out / scan_dir.name / name / "stylegan2_fit", model, fr, reg)
+        fit_seconds.append(seconds_reg + rec["methods"]["stylegan2"]["seconds_latent"])
+        _picture(out / scan_dir.name / name / "picture.png", reg, meshes, faces, scan, obs, cam, base)
+        (out / scan_dir.name / name / "scores.json").write_text(json.dumps(rec, indent=1))
+        records.append(rec)
+        line = "  ".join(f"{m} {rec['methods'][m]['scores']['unseen']['chamfer_mm']:.2f}/"
+                         f"{rec['methods'][m]['scores']['observed']['chamfer_mm']:.2f}" for m in METHODS)
+        print(f"{scan_dir.name} {name} ({spec['hair_style']}, {spec['variant']}): "
+              f"unseen/observed Chamfer mm  {line}  ({fit_seconds[-1]:.0f} s)", flush=True)
+    full = _full_fit(scan_dir, models, opts, config, out) if args["full"] else None
+    settings = {k: v for k, v in args.items() if k not in ("limit", "workers", "threads", "output", "scans")}
+    result = {"settings": settings, "records": records, "fit_seconds": fit_seconds, "full": full}
+    (out / scan_dir.name).mkdir(parents=True, exist_ok=True)
+    tmp = out / scan_dir.name / (SCAN_RESULT + ".partial")
+    tmp.write_text(json.dumps(result, indent=1, default=float))
+    tmp.replace(out / scan_dir.name / SCAN_RESULT)
+    return json.loads(json.dumps(result, default=float))
 
 
 def visible(points, cam, depth):
