@@ -108,10 +108,13 @@ def main() -> None:
         with ProcessPoolExecutor(min(args.workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = {pool.submit(fit_scan, s, vars(args), out): s for s in todo}
             for future in as_completed(futures):
-                done[futures[future].name] = future.result()
+                done[futures[future].name] = _failed_scan(futures[future], future.exception()) or future.result()
     else:
         for s in todo:
-            done[s.name] = fit_scan(s, vars(args), out)
+            try:
+                done[s.name] = fit_scan(s, vars(args), out)
+            except Exception as exc:  # noqa: BLE001 -- one scan never stops a 4-hour benchmark
+                done[s.name] = _failed_scan(s, exc)
     records = [r for s in scans for r in done[s.name]["records"]]
     fit_seconds = [t for s in scans for t in done[s.name]["fit_seconds"]]
     full_records = [done[s.name]["full"] for s in scans if done[s.name]["full"]]
@@ -126,6 +129,14 @@ def main() -> None:
 
 SCAN_RESULT = "scan_result.json"  # a finished scan: its records, with the settings they were made with
 _MODELS: dict = {}
+
+
+def _failed_scan(scan_dir: Path, exc: BaseException | None) -> dict | None:
+    """A scan whose observations could not be made: one error record (retried by a re-run)."""
+    if exc is None:
+        return None
+    print(f"{scan_dir.name}: FAILED {exc}", flush=True)
+    return {"records": [{"scan": scan_dir.name, "observation": "all", "error": str(exc)}], "fit_seconds": [], "full": None}
 
 
 def _done(folder: Path, settings: dict) -> dict | None:
