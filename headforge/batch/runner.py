@@ -204,7 +204,7 @@ def _ray_results(fn, todo, output: Path, ray_address: str | None, num_cpus: int 
             ray.shutdown()
 
 
-def _worker_threads(threads: int) -> None:
+def cap_threads(threads: int) -> None:
     """Process-pool initializer: cap the numeric libraries' threads before they are imported, so that N
     workers on N cores do not each start a thread per core."""
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
@@ -219,7 +219,7 @@ def _process_results(fn, todo, output: Path, workers: int, cpus: float, keep_par
     # spawn, not fork: a forked child of a process that already ran torch/OpenMP threads can deadlock
     context = multiprocessing.get_context("spawn")
     results = []
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_threads,
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=cap_threads,
                              initargs=(max(1, int(cpus)),)) as pool:
         futures = {pool.submit(run_item, fn, key, payload, str(output), keep_partial): key for key, payload in todo}
         for future in as_completed(futures):

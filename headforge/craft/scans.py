@@ -160,7 +160,7 @@ def signed_distance_grid(points: np.ndarray, samples: np.ndarray, normals: np.nd
     outward normals (sign of the offset along the nearest sample's normal)."""
     from scipy.spatial import cKDTree
 
-    dist, nearest = cKDTree(samples).query(points, workers=-1)
+    dist, nearest = cKDTree(samples).query(points, workers=torch.get_num_threads())
     sign = np.sign(((points - samples[nearest]) * normals[nearest]).sum(1))
     return dist * np.where(sign == 0, 1.0, sign)
 
@@ -218,7 +218,7 @@ def build_hair_volume(style: str, vertices: np.ndarray, faces: np.ndarray, scalp
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     from scipy.spatial import cKDTree
 
-    dist, nearest = cKDTree(samples).query(grid, workers=-1)
+    dist, nearest = cKDTree(samples).query(grid, workers=torch.get_num_threads())
     sign = np.sign(((grid - samples[nearest]) * normals[nearest]).sum(1))
     sdf = _style_sdf(style, grid, dist * sign, sample_w[nearest]).reshape(*shape)
     sdf = np.pad(sdf, 1, constant_values=1.0)
@@ -509,7 +509,6 @@ def _write_one(config: ScanSetConfig, spec: ScanSpec, folder: str) -> int:
     """Worker-process body of :func:`generate_scans`: one scan, with the process's own generator."""
     global _WORKER_GENERATOR
     if _WORKER_GENERATOR is None:
-        torch.set_num_threads(1)
         _WORKER_GENERATOR = ScanGenerator(config)
     scan = _WORKER_GENERATOR.make(spec)
     write_scan(Path(folder), spec, scan)
@@ -537,7 +536,11 @@ def generate_scans(output: str | Path, config: ScanSetConfig, log=print, workers
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        from headforge.batch.runner import cap_threads
+
+        # one thread per worker for every library (the k-d tree queries follow torch's count)
+        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=cap_threads, initargs=(1,)) as pool:
             futures = {pool.submit(_write_one, config, spec, str(output / spec.key)): spec for spec in todo}
             for done, future in enumerate(as_completed(futures), 1):
                 logged(done, futures[future], future.result())
