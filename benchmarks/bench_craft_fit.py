@@ -316,13 +316,12 @@ def _table(records, full_records) -> str:
     for region in REGIONS:
         for key, label in (("chamfer_mm", "Chamfer"), ("gt_to_pred_mm", "scan -> completion")):
             lines.append(f"| {region}: {label} | " + " | ".join(f"{_mean(ok, m, region, key):.2f}" for m in METHODS) + " |")
-    kinds = sorted({r["observation"] for r in ok})
-    lines.append("")
-    lines.append("| unseen Chamfer by observation, mm | " + " | ".join(METHODS) + " |")
-    lines.append("| --- |" + " --- |" * len(METHODS))
-    for k in kinds:
-        sub = [r for r in ok if r["observation"] == k]
-        lines.append(f"| {k} ({len(sub)}) | " + " | ".join(f"{_mean(sub, m, 'unseen'):.2f}" for m in METHODS) + " |")
+    for field in ("observation", "hair_style", "variant"):
+        lines += ["", f"| unseen Chamfer by {field.replace('_', ' ')}, mm | " + " | ".join(METHODS) + " |",
+                  "| --- |" + " --- |" * len(METHODS)]
+        for k in sorted({r[field] for r in ok}):
+            sub = [r for r in ok if r[field] == k]
+            lines.append(f"| {k} ({len(sub)}) | " + " | ".join(f"{_mean(sub, m, 'unseen'):.2f}" for m in METHODS) + " |")
     if full_records:
         lines += ["", "| full-scan fit, Chamfer mm | registration | stylegan2 | pca |", "| --- | --- | --- | --- |"]
         for r in full_records:
