@@ -105,7 +105,10 @@ def main() -> None:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(min(args.workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        from headforge.batch.runner import cap_threads
+
+        with ProcessPoolExecutor(min(args.workers, len(todo)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=cap_threads, initargs=(args.threads,)) as pool:
             futures = {pool.submit(fit_scan, s, vars(args), out): s for s in todo}
             for future in as_completed(futures):
                 done[futures[future].name] = _failed_scan(futures[future], future.exception()) or future.result()
