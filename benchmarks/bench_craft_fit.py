@@ -13,6 +13,10 @@ For every held-out generated scan (``headforge craft scans``; harder variants in
   Chamfer and one-sided distances (mm) overall, on the part the depth map saw (GT samples
   within 4 mm of the map's depth at their pixel), on the unseen part, and on the unseen back
   and hair (unseen samples labelled scalp or hair);
+- ``--z-starts K --combine best|mean``: the StyleGAN2 fit from K z initialisations (the paper: one);
+- each partial registration is kept as ``<scan>/<observation>/registration.npz`` (under
+  ``--registrations DIR``, default OUT) and reused by any later run with the same observation
+  settings, so a fitting variant is compared on the very same partial maps;
 - with ``--full``: the full-scan fit (registration, then the whole map) beside the
   registration itself (the generator's reconstruction gap);
 - a hair-transfer sheet between the first two scans' frontal completions.
@@ -89,6 +93,9 @@ def main() -> None:
     ap.add_argument("--steps-scale", type=float, default=1.0, help="multiply every optimisation step count")
     ap.add_argument("--full", action="store_true", help="also fit the whole scans (registration + W+)")
     ap.add_argument("--no-partial", action="store_true", help="only the full-scan fits (with --full)")
+    ap.add_argument("--z-starts", type=int, default=1, help="StyleGAN2: z initialisations (the paper: 1)")
+    ap.add_argument("--combine", default="best", choices=("best", "mean"), help="with --z-starts > 1")
+    ap.add_argument("--registrations", default=None, help="folder of cached partial registrations (default: OUT)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads per process")
     ap.add_argument("--workers", type=int, default=1, help="scans fitted at a time, one process each")
     args = ap.parse_args()
@@ -97,7 +104,7 @@ def main() -> None:
     scans = sorted(p for p in Path(args.scans).iterdir() if (p / "scan.ply").is_file())[: args.limit]
     if not scans:
         raise SystemExit(f"error: no generated scans in {args.scans}")
-    settings = {k: v for k, v in vars(args).items() if k not in ("limit", "workers", "threads", "output", "scans")}
+    settings = _settings(vars(args))
     done = {s.name: _done(out / s.name, settings) for s in scans}
     todo = [s for s in scans if done[s.name] is None]
     print(f"{len(scans) - len(todo)} of {len(scans)} scans done earlier (resumed); {len(todo)} to fit", flush=True)
@@ -142,6 +149,49 @@ def _failed_scan(scan_dir: Path, exc: BaseException | None) -> dict | None:
     return {"records": [{"scan": scan_dir.name, "observation": "all", "error": str(exc)}], "fit_seconds": [], "full": None}
 
 
+def _settings(args: dict) -> dict:
+    """What a finished scan's records depend on (the StyleGAN2 fit's z starts only when not the
+    paper's one, so results made before the option existed stay valid)."""
+    out = {k: v for k, v in args.items() if k not in ("limit", "workers", "threads", "output", "scans", "registrations")}
+    if out.get("z_starts", 1) == 1:
+        out.pop("z_starts", None)
+        out.pop("combine", None)
+    return out
+
+
+REGISTRATION_KEYS = ("preset", "steps_scale", "size", "side_yaw", "cloud")  # what a cached partial registration depends on
+
+
+def _save_registration(path: Path, args: dict, reg, pm, mask, seconds: float) -> None:
+    a = reg.fit.alignment
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial.npz")
+    np.savez_compressed(tmp, map=pm, mask=mask, rotation=a.rotation, translation=a.translation, scale=a.scale,
+                        points=reg.points_canonical, face_coverage=reg.fit.face_coverage, seconds=seconds,
+                        density=reg.density, key=json.dumps({k: args[k] for k in REGISTRATION_KEYS}),
+                        **{f"param.{k}": v.detach().numpy() for k, v in a.params.items()})
+    tmp.replace(path)
+
+
+def _load_registration(path: Path, args: dict):
+    """(registration stand-in, map, mask, seconds) of a cached partial registration, or None."""
+    from types import SimpleNamespace
+
+    from headforge.craft.register import Alignment
+
+    try:
+        d = np.load(path)
+        if json.loads(str(d["key"])) != {k: args[k] for k in REGISTRATION_KEYS}:
+            return None
+        params = {k[6:]: torch.as_tensor(d[k]) for k in d.files if k.startswith("param.")}
+        align = Alignment(float(d["scale"]), float(d["scale"]), d["rotation"], d["translation"], params, float("nan"))
+        fit = SimpleNamespace(alignment=align, face_coverage=float(d["face_coverage"]))
+        reg = SimpleNamespace(fit=fit, density=str(d["density"]), points_canonical=d["points"])
+        return reg, d["map"], d["mask"], float(d["seconds"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
 def _done(folder: Path, settings: dict) -> dict | None:
     """A scan finished by an earlier run with the same settings (resume), else None."""
     try:
@@ -155,7 +205,8 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
     """Every observation of one scan (and its full fit with --full): {records, fit_seconds, full},
     also written to OUT/<scan>/scan_result.json (last, so a killed scan is redone)."""
     torch.set_num_threads(args["threads"])
-    opts = F.FitOptions(preset=args["preset"], steps_scale=args["steps_scale"])
+    opts = F.FitOptions(preset=args["preset"], steps_scale=args["steps_scale"], z_starts=args["z_starts"],
+                        combine=args["combine"])
     config = F.invert_config(opts)
     if not _MODELS:
         _MODELS.update({m: F.load_model(args["run"], m) for m in METHODS})
@@ -167,16 +218,22 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
     scan, spec, gt = load_generated(scan_dir)
     obs_list = [] if args["no_partial"] else observations(scan_dir, scan, gt, out / scan_dir.name, args["size"],
                                                           args["side_yaw"], args["cloud"])
+    cache = Path(args["registrations"] or out)
     for name, obs, cam, depth in obs_list:
-        t0 = time.perf_counter()
-        try:
-            reg = register_partial(base.template, obs, pcfg)
-        except Exception as exc:  # a failed observation is recorded, never silently dropped
-            records.append({"scan": scan_dir.name, "observation": name, "error": str(exc)})
-            print(f"{scan_dir.name} {name}: FAILED {exc}", flush=True)
-            continue
-        pm, mask = partial_map(reg, base.duv, base.resolution)
-        seconds_reg = time.perf_counter() - t0
+        cached = _load_registration(cache / scan_dir.name / name / "registration.npz", args)
+        if cached is not None:
+            reg, pm, mask, seconds_reg = cached
+        else:
+            t0 = time.perf_counter()
+            try:
+                reg = register_partial(base.template, obs, pcfg)
+            except Exception as exc:  # a failed observation is recorded, never silently dropped
+                records.append({"scan": scan_dir.name, "observation": name, "error": str(exc)})
+                print(f"{scan_dir.name} {name}: FAILED {exc}", flush=True)
+                continue
+            pm, mask = partial_map(reg, base.duv, base.resolution)
+            seconds_reg = time.perf_counter() - t0
+            _save_registration(cache / scan_dir.name / name / "registration.npz", args, reg, pm, mask, seconds_reg)
         to_scan = to_scan_frame(obs, cam)
         regions = {"observed": lambda p, lab, c=cam, d=depth: visible(p, c, d),
                    "unseen": lambda p, lab, c=cam, d=depth: ~visible(p, c, d),
@@ -203,8 +260,7 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
         print(f"{scan_dir.name} {name} ({spec['hair_style']}, {spec['variant']}): "
               f"unseen/observed Chamfer mm  {line}  ({fit_seconds[-1]:.0f} s)", flush=True)
     full = _full_fit(scan_dir, models, opts, config, out) if args["full"] else None
-    settings = {k: v for k, v in args.items() if k not in ("limit", "workers", "threads", "output", "scans")}
-    result = {"settings": settings, "records": records, "fit_seconds": fit_seconds, "full": full}
+    result = {"settings": _settings(args), "records": records, "fit_seconds": fit_seconds, "full": full}
     (out / scan_dir.name).mkdir(parents=True, exist_ok=True)
     tmp = out / scan_dir.name / (SCAN_RESULT + ".partial")
     tmp.write_text(json.dumps(result, indent=1, default=float))

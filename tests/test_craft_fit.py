@@ -245,6 +245,39 @@ def test_stylegan2_inversion_lowers_its_losses(run, tpl):
         I.invert_full(trainer, torch.zeros(1, 3, 64, 64), cfg)
 
 
+def test_partial_inversion_with_several_z_starts(run):
+    """K z starts: "best" keeps the start with the lowest observed loss after the z step (the same
+    start a one-start fit from that z would take), "mean" returns the mean of the K completions."""
+    from dataclasses import replace
+
+    from headforge.craft.generative import invert as I
+    from headforge.craft.generative import train as T
+    from headforge.craft.generative.data import face_texels
+
+    trainer, _ = T.load_trained(run, "stylegan2")
+    target = T.train_maps(run)[:1]
+    face = face_texels("open-head", 1, 32)
+    mask = np.zeros((32, 32), bool)
+    mask[:, 12:] = True
+    cfg = replace(I.InvertConfig.quick(), z_steps=10, dw_steps=5, noise_steps=5, w_avg_samples=100, z_starts=3)
+    best = I.invert_partial(trainer, target, mask, face, cfg)
+    losses = best.history["z_start_losses"]
+    assert len(losses) == 3 and best.z.shape == (1, trainer.G_ema.cfg.z_dim)
+    G = I._generator(trainer)
+    M = torch.as_tensor(mask, dtype=torch.float32)[None, None]
+    perc = I.Perceptual(cfg.patches)
+    with torch.no_grad():
+        kept = G.synthesis(G.ws(best.z))
+        kept_loss = cfg.perceptual * perc(kept * M, target * M) + cfg.l1 * ((kept - target) * M).abs().mean()
+    assert float(kept_loss) == pytest.approx(min(losses), rel=1e-4) and max(losses) > min(losses)
+    mean = I.invert_partial(trainer, target, mask, face, replace(cfg, combine="mean"), noise=False)
+    assert mean.ws.shape[0] == 3 and mean.map.shape == (1, 3, 32, 32)
+    with torch.no_grad():
+        each = G.synthesis(mean.ws)
+    assert torch.allclose(mean.map, each.mean(0, keepdim=True), atol=1e-5)
+    assert not torch.allclose(each[0], each[1], atol=1e-3)  # the starts differ: the mean is not one of them
+
+
 # ---------------------------------------------------------------- the commands
 def test_craft_depth_fit_and_transfer_hair(bald, run, tmp_path):
     """craft depth -> craft fit (StyleGAN2 and PCA, scored against the scan) -> transfer-hair."""
@@ -300,6 +333,8 @@ def test_craft_fit_bad_inputs(bald, run, tmp_path):
     assert r.exit_code == 1 and "not a headcraft run folder" in r.output
     r = cli("craft", "fit", root / "front.png", "--model", run, "-o", tmp_path / "o3", "--method", "vae")
     assert r.exit_code == 1 and "unknown --method 'vae'" in r.output
+    r = cli("craft", "fit", root / "front.png", "--model", run, "-o", tmp_path / "o6", "--z-starts", 0)
+    assert r.exit_code == 1 and "--z-starts must be 1 to 64" in r.output and not (tmp_path / "o6").exists()
     # a generator checkpoint of another resolution
     import shutil
 

@@ -228,6 +228,9 @@ def fit(observation: Path = typer.Argument(..., help="a full scan (mesh file or 
         units: str | None = typer.Option(None, help="m, cm, mm or metres per unit (default: m cloud, guessed for a scan)"),
         noise: bool = typer.Option(True, help="the optional noise step of the StyleGAN2 fit"),
         seed: int = typer.Option(0, help="seed of the z initialisation"),
+        z_starts: int = typer.Option(1, help="StyleGAN2 depth fits: z initialisations fitted side by side (the paper: 1)"),
+        combine: str = typer.Option("best", help="with --z-starts > 1: best (the start that fits the observation best) or "
+                                                 "mean (the mean of all completions: closer to the scan on average, less detail)"),
         steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
         gt: Path | None = typer.Option(None, "--gt", help="ground-truth scan folder (headforge craft scans) to score against")) -> None:
     """Fit a trained HeadCraft model to a full scan or to one depth map / point cloud (App. B.1)."""
@@ -239,7 +242,7 @@ def fit(observation: Path = typer.Argument(..., help="a full scan (mesh file or 
         torch_threads()
         opts = FitOptions(method=method, preset=preset, camera=str(camera) if camera else None, depth_scale=depth_scale,
                           density=density, up=up, forward=forward, units=units, noise=noise, seed=seed,
-                          steps_scale=steps_scale)
+                          z_starts=z_starts, combine=combine, steps_scale=steps_scale)
         run_fit(observation, model_run, output, opts, gt, log=typer.echo)
     except HeadforgeError as exc:
         _fail(exc)

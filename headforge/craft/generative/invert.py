@@ -39,6 +39,8 @@ class InvertConfig:
     full_steps: int = 1000  # B.1 full scan: W+ steps
     full_noise_steps: int = 1000
     z_steps: int = 500  # B.1 depth map: z, then Delta-w, then noise
+    z_starts: int = 1  # depth fits: z initialisations fitted side by side (B.1: one)
+    combine: str = "best"  # z_starts > 1: "best" start by the observed loss after the z step, or the "mean" of all completions
     dw_steps: int = 500
     noise_steps: int = 500
     lr: float = 1e-2
@@ -129,8 +131,8 @@ def face_circle(face: np.ndarray, radius_share: float = 0.7) -> np.ndarray:
 @dataclass
 class Inversion:
     map: torch.Tensor  # (1, 3, R, R) model units
-    ws: torch.Tensor  # (1, num_ws, w_dim)
-    z: torch.Tensor | None  # (1, z_dim) partial fits
+    ws: torch.Tensor  # (1, num_ws, w_dim); a partial fit's "mean" of K starts: (K, num_ws, w_dim)
+    z: torch.Tensor | None  # (1 or K, z_dim) partial fits
     noise: dict[str, torch.Tensor]  # SynthLayer name -> (1, 1, r, r) noise after the fit
     history: dict[str, list[float]]
     perceptual: str
@@ -241,7 +243,13 @@ def invert_full(trainer, target, config: InvertConfig, noise: bool = True, seed:
 def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: InvertConfig, noise: bool = True,
                    seed: int = 0, progress=None) -> Inversion:
     """B.1 "fitting the latent code to a depth map": z, then Delta-w, then noise, on the
-    observed texels ``mask`` (R, R); ``face`` (R, R) the face island (for the inner-face disc)."""
+    observed texels ``mask`` (R, R); ``face`` (R, R) the face island (for the inner-face disc).
+
+    With ``config.z_starts`` K > 1, K z drawn from N(0, I) are fitted side by side (one batch);
+    ``combine="best"`` continues with the start whose observed loss is lowest after the z step,
+    ``"mean"`` carries all K through Delta-w and the (shared) noise step and returns the mean of
+    their maps -- an estimate of the completion's posterior mean rather than one draw of it.
+    ``ws`` and ``z`` then hold every start kept: (K', num_ws, w_dim), (K', z_dim)."""
     start = time.perf_counter()
     G = _generator(trainer)
     U = _as_batch(target)
@@ -251,21 +259,29 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
         raise HeadforgeError(f"masks must be {R}x{R}, got {mask.shape} and {face.shape}")
     if not mask.any():
         raise HeadforgeError("the partial map has no observed texel")
+    if config.z_starts < 1 or config.combine not in ("best", "mean"):
+        raise HeadforgeError(f"z_starts must be >= 1 and combine best or mean, got {config.z_starts} and {config.combine!r}")
     M = torch.as_tensor(mask, dtype=torch.float32)[None, None]
     Mf = torch.as_tensor(face_circle(face, config.face_radius), dtype=torch.float32)[None, None]
     perc = Perceptual(config.patches)
     hist = {"z": [], "dw": [], "noise": []}
     gen = torch.Generator().manual_seed(seed)
-    z = torch.randn(1, G.cfg.z_dim, generator=gen).requires_grad_(True)
+    z = torch.randn(config.z_starts, G.cfg.z_dim, generator=gen).requires_grad_(True)
 
     def observed_terms(out):
-        return config.perceptual * perc(out * M, U * M) + config.l1 * ((out - U) * M).abs().mean()
+        # Summed over the batch: each start's gradient is its own loss's (Adam is scale-free anyway).
+        return sum(config.perceptual * perc(o * M, U * M) + config.l1 * ((o - U) * M).abs().mean() for o in out.split(1))
 
     def z_loss():
         return observed_terms(G.synthesis(G.ws(z)))
 
     _loop([z], config.z_steps, config.lr, z_loss, hist["z"], progress, "z")
     z = z.detach()
+    if config.z_starts > 1 and config.combine == "best":
+        with torch.no_grad():
+            losses = torch.stack([observed_terms(G.synthesis(G.ws(zk[None]))) for zk in z])
+        hist["z_start_losses"] = losses.tolist()
+        z = z[int(losses.argmin())][None]
     with torch.no_grad():
         w_z = G.ws(z)
         ref = G.synthesis(w_z)
@@ -274,7 +290,8 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
     def dw_loss():
         out = G.synthesis(w_z + dw)
         keep = 1 - M
-        preserve = config.preserve_perceptual * perc(out * keep, ref * keep) + config.preserve_l1 * ((out - ref) * keep).abs().mean()
+        preserve = sum(config.preserve_perceptual * perc(o * keep, r * keep) + config.preserve_l1 * ((o - r) * keep).abs().mean()
+                       for o, r in zip(out.split(1), ref.split(1)))
         face_term = config.face * (out * Mf).abs().sum() / Mf.sum().clamp(min=1)
         return observed_terms(out) + preserve + face_term
 
@@ -282,7 +299,7 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
     ws = (w_z + dw).detach()
     out, state = _noise_step(G, ws, lambda: observed_terms(G.synthesis(ws)), config.noise_reg,
                              config.noise_steps if noise else 0, config.lr, hist["noise"], progress)
-    return Inversion(out, ws, z, state, hist, perc.name, time.perf_counter() - start)
+    return Inversion(out.mean(0, keepdim=True), ws, z, state, hist, perc.name, time.perf_counter() - start)
 
 
 # ---------------------------------------------------------------- PCA and the mean map
