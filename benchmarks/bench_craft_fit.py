@@ -159,21 +159,27 @@ def _settings(args: dict) -> dict:
     return out
 
 
-REGISTRATION_KEYS = ("preset", "steps_scale", "size", "side_yaw", "cloud")  # what a cached partial registration depends on
+REGISTRATION_KEYS = ("preset", "steps_scale", "size", "side_yaw", "cloud")  # with the partial config: what a cached registration depends on
 
 
-def _save_registration(path: Path, args: dict, reg, pm, mask, seconds: float) -> None:
+def _registration_key(args: dict, pcfg) -> str:
+    from dataclasses import asdict
+
+    return json.dumps({**{k: args[k] for k in REGISTRATION_KEYS}, "config": asdict(pcfg)}, sort_keys=True, default=str)
+
+
+def _save_registration(path: Path, key: str, reg, pm, mask, seconds: float) -> None:
     a = reg.fit.alignment
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
     np.savez_compressed(tmp, map=pm, mask=mask, rotation=a.rotation, translation=a.translation, scale=a.scale,
                         points=reg.points_canonical, face_coverage=reg.fit.face_coverage, seconds=seconds,
-                        density=reg.density, key=json.dumps({k: args[k] for k in REGISTRATION_KEYS}),
+                        density=reg.density, key=key,
                         **{f"param.{k}": v.detach().numpy() for k, v in a.params.items()})
     tmp.replace(path)
 
 
-def _load_registration(path: Path, args: dict):
+def _load_registration(path: Path, key: str):
     """(registration stand-in, map, mask, seconds) of a cached partial registration, or None."""
     from types import SimpleNamespace
 
@@ -181,7 +187,7 @@ def _load_registration(path: Path, args: dict):
 
     try:
         d = np.load(path)
-        if json.loads(str(d["key"])) != {k: args[k] for k in REGISTRATION_KEYS}:
+        if str(d["key"]) != key:
             return None
         params = {k[6:]: torch.as_tensor(d[k]) for k in d.files if k.startswith("param.")}
         align = Alignment(float(d["scale"]), float(d["scale"]), d["rotation"], d["translation"], params, float("nan"))
@@ -219,8 +225,9 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
     obs_list = [] if args["no_partial"] else observations(scan_dir, scan, gt, out / scan_dir.name, args["size"],
                                                           args["side_yaw"], args["cloud"])
     cache = Path(args["registrations"] or out)
+    key = _registration_key(args, pcfg)
     for name, obs, cam, depth in obs_list:
-        cached = _load_registration(cache / scan_dir.name / name / "registration.npz", args)
+        cached = _load_registration(cache / scan_dir.name / name / "registration.npz", key)
         if cached is not None:
             reg, pm, mask, seconds_reg = cached
         else:
@@ -233,7 +240,7 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
                 continue
             pm, mask = partial_map(reg, base.duv, base.resolution)
             seconds_reg = time.perf_counter() - t0
-            _save_registration(cache / scan_dir.name / name / "registration.npz", args, reg, pm, mask, seconds_reg)
+            _save_registration(cache / scan_dir.name / name / "registration.npz", key, reg, pm, mask, seconds_reg)
         to_scan = to_scan_frame(obs, cam)
         regions = {"observed": lambda p, lab, c=cam, d=depth: visible(p, c, d),
                    "unseen": lambda p, lab, c=cam, d=depth: ~visible(p, c, d),

@@ -185,6 +185,8 @@ def test_partial_registration_and_map(bald, tpl):
     in_scan = (reg.fit.alignment.to_scan(reg.vertices.numpy()[reg.observed]) @ obs.to_source.T - cam.t) @ cam.R
     d = points_to_mesh(in_scan, scan.vertices, scan.faces)
     assert np.median(d) < 5e-4
+    assert reg.threshold_mm == pytest.approx(max(3.0, 1.5e3 * obs.spacing_m()), rel=1e-6)  # quick: t from the spacing
+    assert PartialConfig.paper().refine_spacing == 0 and PartialConfig.paper().refine_dense_units == 0.1  # the paper's t
     pm, mask = partial_map(reg, duv, 32)
     islands = texel_islands("open-head", 1, 32)
     assert mask.any() and (islands[mask] >= 0).all()

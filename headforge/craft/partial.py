@@ -16,7 +16,10 @@ template the observation covers -> a partial UV map and its mask.
    template -> cloud Chamfer direction counts only m, the vertices outside m stay put.
 4. **Mask refinement**: m_final = m and (distance from the registered vertex to the nearest
    cloud point <= t), t = 0.1 paper units (0.83 mm) for a dense cloud, 0.3 (2.5 mm) for a
-   sparse one; displacements and mask are baked into two maps.
+   sparse one in ``paper``; ``quick`` takes t = max(3 mm, 1.5 x the cloud's median point
+   spacing) and lets stage 2 reach 1 unit (8.3 mm), so the visible hair counts as observed
+   (docs/headcraft.md, "the partial registration and visible hair"); displacements and mask
+   are baked into two maps.
 
 Frames: the observation's points are in observation head axes W (:mod:`headforge.craft.observe`);
 the fit's :class:`headforge.craft.register.Alignment` maps W to the canonical head frame.
@@ -76,6 +79,7 @@ class PartialConfig:
     hull_floor_quantile: float = 0.3
     refine_dense_units: float = 0.1  # mask refinement threshold t, paper units (0.83 mm)
     refine_sparse_units: float = 0.3  # (2.5 mm)
+    refine_spacing: float = 0.0  # t at least this many times the cloud's median point spacing (0: off, the paper)
     sparse_spacing_mm: float = 2.0  # a cloud whose points lie farther apart than this is "sparse"
     density: str = "auto"  # auto | dense | sparse
 
@@ -84,8 +88,12 @@ class PartialConfig:
         reg = R.RegisterConfig.quick()
         reg.stage1_face_margin_mm = None  # stage 1 on scalp + neck only: the outer face was not tried here
         reg.stage1 = replace(_partial_stage1(), steps=400)
-        reg.stage2 = replace(_partial_stage2(), steps=250, lr=1.5e-3)
-        return cls(register=reg, fit=CloudFitConfig(rigid_steps=50, steps=200, fit_points=12_000))
+        # stage 2 reaching 8.3 mm and t = max(3 mm, 1.5 x spacing): the paper's 0.83 mm kept all but
+        # 15-23 scalp texels of a frontal map out, its 2.5 mm all but 0.4 % of a 1 % cloud's texels (docs/headcraft.md)
+        reg.stage2 = replace(_partial_stage2(), steps=250, lr=1.5e-3, prune_units=1.0)
+        return cls(register=reg, fit=CloudFitConfig(rigid_steps=50, steps=200, fit_points=12_000),
+                   refine_dense_units=3e-3 * R.PAPER_UNITS_PER_M, refine_sparse_units=3e-3 * R.PAPER_UNITS_PER_M,
+                   refine_spacing=1.5)
 
     @classmethod
     def paper(cls) -> PartialConfig:
@@ -328,6 +336,8 @@ def _register_partial(template, obs, config, progress, fit) -> PartialRegistrati
     final = (base_u + disp) / R.PAPER_UNITS_PER_M
     density = density_of(obs, config)
     t_units = config.refine_sparse_units if density == "sparse" else config.refine_dense_units
+    if config.refine_spacing:
+        t_units = max(t_units, config.refine_spacing * obs.spacing_m() * R.PAPER_UNITS_PER_M)
     d, _ = cKDTree(canon).query(final.numpy())
     observed = allowed & (d <= t_units / R.PAPER_UNITS_PER_M)
     if not observed.any():
@@ -354,4 +364,5 @@ def partial_map(reg: PartialRegistration, duv, size: int, bake_size: int | None 
     summed = (disp * mask[..., None]).reshape(size, k, size, k, 3).sum((1, 3))
     count = mask.reshape(size, k, size, k).sum((1, 3))
     out = np.where(count[..., None] > 0, summed / np.maximum(count, 1)[..., None], 0.0)
-    return np.where((w >= 0.5)[..., None], out, 0.0), w >= 0.5
+    keep = (w >= 0.5) & (uvmap.texel_islands(duv, size) >= 0)  # a border texel the layout leaves out at this size stays out
+    return np.where(keep[..., None], out, 0.0), keep
