@@ -269,11 +269,9 @@ def invert_config(options: FitOptions) -> I.InvertConfig:
 
     if not 0 < options.steps_scale <= 10:
         raise HeadforgeError(f"--steps-scale must be within (0, 10], got {options.steps_scale}")
-    if not 1 <= options.z_starts <= 64 or options.combine not in ("best", "mean"):
-        raise HeadforgeError(f"--z-starts must be 1 to 64 and --combine best or mean, got {options.z_starts} and {options.combine!r}")
     cfg = I.InvertConfig.preset(options.preset)
     k = options.steps_scale
-    cfg = replace(cfg, z_starts=options.z_starts, combine=options.combine)
+    cfg = replace(cfg, z_starts=options.z_starts, combine=options.combine)  # validated by InvertConfig
     return replace(cfg, **{f: _scaled(getattr(cfg, f), k) for f in ("full_steps", "full_noise_steps", "z_steps", "dw_steps", "noise_steps")})
 
 

@@ -18,7 +18,7 @@ template the observation covers -> a partial UV map and its mask.
    cloud point <= t), t = 0.1 paper units (0.83 mm) for a dense cloud, 0.3 (2.5 mm) for a
    sparse one in ``paper``; ``quick`` takes t = max(3 mm, 1.5 x the cloud's median point
    spacing) and lets stage 2 reach 1 unit (8.3 mm), so the visible hair counts as observed
-   (docs/headcraft.md, "the partial registration and visible hair"); displacements and mask
+   (docs/headcraft.md, "Visible hair in the partial map"); displacements and mask
    are baked into two maps.
 
 Frames: the observation's points are in observation head axes W (:mod:`headforge.craft.observe`);

@@ -55,6 +55,10 @@ class InvertConfig:
     patches: int = 4  # perceptual term on patches x patches tiles (B.1: sixteen 64 px tiles of 256 px)
     pca_sigma_m: float = 0.001  # PCA fit: texel noise, metres
 
+    def __post_init__(self):
+        if not 1 <= self.z_starts <= 64 or self.combine not in ("best", "mean"):
+            raise HeadforgeError(f"--z-starts must be 1 to 64 and --combine best or mean, got {self.z_starts} and {self.combine!r}")
+
     @classmethod
     def paper(cls) -> InvertConfig:
         return cls()
@@ -259,8 +263,6 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
         raise HeadforgeError(f"masks must be {R}x{R}, got {mask.shape} and {face.shape}")
     if not mask.any():
         raise HeadforgeError("the partial map has no observed texel")
-    if config.z_starts < 1 or config.combine not in ("best", "mean"):
-        raise HeadforgeError(f"z_starts must be >= 1 and combine best or mean, got {config.z_starts} and {config.combine!r}")
     M = torch.as_tensor(mask, dtype=torch.float32)[None, None]
     Mf = torch.as_tensor(face_circle(face, config.face_radius), dtype=torch.float32)[None, None]
     perc = Perceptual(config.patches)
