@@ -172,7 +172,7 @@ def _save_registration(path: Path, key: str, reg, pm, mask, seconds: float) -> N
     a = reg.fit.alignment
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
-    np.savez_compressed(tmp, map=pm, mask=mask, rotation=a.rotation, translation=a.translation, scale=a.scale,
+    np.savez_compressed(tmp, map=pm, mask=mask, rotation=a.rotation, translation=a.translation, scale=a.scale, scale_found=a.scale_found,
                         points=reg.points_canonical, face_coverage=reg.fit.face_coverage, seconds=seconds,
                         density=reg.density, key=key,
                         **{f"param.{k}": v.detach().numpy() for k, v in a.params.items()})
@@ -186,14 +186,14 @@ def _load_registration(path: Path, key: str):
     from headforge.craft.register import Alignment
 
     try:
-        d = np.load(path)
-        if str(d["key"]) != key:
-            return None
-        params = {k[6:]: torch.as_tensor(d[k]) for k in d.files if k.startswith("param.")}
-        align = Alignment(float(d["scale"]), float(d["scale"]), d["rotation"], d["translation"], params, float("nan"))
-        fit = SimpleNamespace(alignment=align, face_coverage=float(d["face_coverage"]))
-        reg = SimpleNamespace(fit=fit, density=str(d["density"]), points_canonical=d["points"])
-        return reg, d["map"], d["mask"], float(d["seconds"])
+        with np.load(path) as d:  # closed after reading: a 60-observation run opens one per observation
+            if str(d["key"]) != key:
+                return None
+            params = {k[6:]: torch.as_tensor(d[k]) for k in d.files if k.startswith("param.")}
+            align = Alignment(float(d["scale"]), float(d["scale_found" if "scale_found" in d.files else "scale"]), d["rotation"], d["translation"], params, float("nan"))
+            fit = SimpleNamespace(alignment=align, face_coverage=float(d["face_coverage"]))
+            reg = SimpleNamespace(fit=fit, density=str(d["density"]), points_canonical=d["points"])
+            return reg, d["map"], d["mask"], float(d["seconds"])
     except (OSError, KeyError, ValueError):
         return None
 
