@@ -363,20 +363,39 @@ def _summary(records, full_records, fit_seconds) -> dict:
         s[f"{key}_unseen_mm"] = _mean(ok, m, "unseen")
         s[f"{key}_observed_mm"] = _mean(ok, m, "observed")
         s[f"{key}_chamfer_mm"] = _mean(ok, m, "all")
-    base_unseen = min(s["mean_map_unseen_mm"], s["pca_unseen_mm"], s["bare_head_unseen_mm"])
-    base_obs = min(s["mean_map_observed_mm"], s["pca_observed_mm"], s["bare_head_observed_mm"])
-    s["target_unseen_beats_all"] = bool(s["completion_unseen_mm"] < base_unseen)
-    s["target_observed_within_10pct"] = bool(s["completion_observed_mm"] <= 1.1 * base_obs)
-    s["fit_seconds"] = float(statistics.median(fit_seconds)) if fit_seconds else float("nan")
+    if ok:
+        base_unseen = min(s["mean_map_unseen_mm"], s["pca_unseen_mm"], s["bare_head_unseen_mm"])
+        base_obs = min(s["mean_map_observed_mm"], s["pca_observed_mm"], s["bare_head_observed_mm"])
+        s["target_unseen_beats_all"] = bool(s["completion_unseen_mm"] < base_unseen)
+        s["target_observed_within_10pct"] = bool(s["completion_observed_mm"] <= 1.1 * base_obs)
+        s["fit_seconds"] = float(statistics.median(fit_seconds)) if fit_seconds else None
+    else:  # --no-partial: no completion was measured, so no figure and no verdict (null, never NaN or false)
+        s = {k: (v if k in ("n_scans", "n_observations", "failed") else None) for k, v in s.items()}
+        s.update(target_unseen_beats_all=None, target_observed_within_10pct=None, fit_seconds=None)
     if full_records:
-        s["full_registration_chamfer_mm"] = float(np.mean([r["registration"]["all"]["chamfer_mm"] for r in full_records]))
-        s["full_stylegan2_chamfer_mm"] = float(np.mean([r["stylegan2"]["all"]["chamfer_mm"] for r in full_records]))
-        s["full_pca_chamfer_mm"] = float(np.mean([r["pca"]["all"]["chamfer_mm"] for r in full_records]))
+        s["n_full_scans"] = len(full_records)
+        for m in ("registration", "stylegan2", "pca"):
+            s[f"full_{m}_chamfer_mm"] = float(np.mean([r[m]["all"]["chamfer_mm"] for r in full_records]))
+        s["full_stylegan2_seconds"] = float(statistics.median([r["stylegan2"]["seconds"] for r in full_records]))
     return s
 
 
 def _table(records, full_records) -> str:
     ok = [r for r in records if "methods" in r]
+    lines = []
+    if ok:
+        lines += _completion_table(ok)
+    if full_records:
+        lines += ["", "| full-scan fit, Chamfer mm | registration | stylegan2 | pca |", "| --- | --- | --- | --- |"]
+        for r in full_records:
+            lines.append(f"| {r['scan']} ({r['hair_style']}, {r['variant']}) | {r['registration']['all']['chamfer_mm']:.2f} | "
+                         f"{r['stylegan2']['all']['chamfer_mm']:.2f} | {r['pca']['all']['chamfer_mm']:.2f} |")
+        lines.append(f"| mean ({len(full_records)}) | " + " | ".join(
+            f"{np.mean([r[m]['all']['chamfer_mm'] for r in full_records]):.2f}" for m in ("registration", "stylegan2", "pca")) + " |")
+    return "\n".join(lines).strip("\n") + "\n"
+
+
+def _completion_table(ok) -> list[str]:
     lines = ["| completion (mean over observations), mm | " + " | ".join(METHODS) + " |",
              "| --- |" + " --- |" * len(METHODS)]
     for region in REGIONS:
@@ -388,12 +407,7 @@ def _table(records, full_records) -> str:
         for k in sorted({r[field] for r in ok}):
             sub = [r for r in ok if r[field] == k]
             lines.append(f"| {k} ({len(sub)}) | " + " | ".join(f"{_mean(sub, m, 'unseen'):.2f}" for m in METHODS) + " |")
-    if full_records:
-        lines += ["", "| full-scan fit, Chamfer mm | registration | stylegan2 | pca |", "| --- | --- | --- | --- |"]
-        for r in full_records:
-            lines.append(f"| {r['scan']} ({r['hair_style']}, {r['variant']}) | {r['registration']['all']['chamfer_mm']:.2f} | "
-                         f"{r['stylegan2']['all']['chamfer_mm']:.2f} | {r['pca']['all']['chamfer_mm']:.2f} |")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 if __name__ == "__main__":
