@@ -14,6 +14,7 @@ For every held-out generated scan (``headforge craft scans``; harder variants in
   within 4 mm of the map's depth at their pixel), on the unseen part, and on the unseen back
   and hair (unseen samples labelled scalp or hair);
 - ``--z-starts K --combine best|mean``: the StyleGAN2 fit from K z initialisations (the paper: one);
+  ``--truncation PSI``: its z step on w pulled toward the average w (the paper: 1);
 - each partial registration is kept as ``<scan>/<observation>/registration.npz`` (under
   ``--registrations DIR``, default OUT) and reused by any later run with the same observation
   settings, so a fitting variant is compared on the very same partial maps;
@@ -95,6 +96,7 @@ def main() -> None:
     ap.add_argument("--no-partial", action="store_true", help="only the full-scan fits (with --full)")
     ap.add_argument("--z-starts", type=int, default=1, help="StyleGAN2: z initialisations (the paper: 1)")
     ap.add_argument("--combine", default="best", choices=("best", "mean"), help="with --z-starts > 1")
+    ap.add_argument("--truncation", type=float, default=1.0, help="StyleGAN2: psi of the z step (the paper: 1)")
     ap.add_argument("--registrations", default=None, help="folder of cached partial registrations (default: OUT)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads per process")
     ap.add_argument("--workers", type=int, default=1, help="scans fitted at a time, one process each")
@@ -156,6 +158,8 @@ def _settings(args: dict) -> dict:
     if out.get("z_starts", 1) == 1:
         out.pop("z_starts", None)
         out.pop("combine", None)
+    if out.get("truncation", 1.0) == 1.0:
+        out.pop("truncation", None)
     return out
 
 
@@ -212,7 +216,7 @@ def fit_scan(scan_dir: Path, args: dict, out: Path) -> dict:
     also written to OUT/<scan>/scan_result.json (last, so a killed scan is redone)."""
     torch.set_num_threads(args["threads"])
     opts = F.FitOptions(preset=args["preset"], steps_scale=args["steps_scale"], z_starts=args["z_starts"],
-                        combine=args["combine"])
+                        combine=args["combine"], truncation=args["truncation"])
     config = F.invert_config(opts)
     if not _MODELS:
         _MODELS.update({m: F.load_model(args["run"], m) for m in METHODS})

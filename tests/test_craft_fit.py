@@ -280,6 +280,32 @@ def test_partial_inversion_with_several_z_starts(run):
     assert not torch.allclose(each[0], each[1], atol=1e-3)  # the starts differ: the mean is not one of them
 
 
+def test_partial_inversion_truncation(run):
+    """psi -> 0 maps every z to the average w, so the z step cannot move the map off the average
+    map; psi = 1 (the paper) is the untruncated fit; psi outside (0, 1] is refused."""
+    from dataclasses import replace
+
+    from headforge.craft.generative import invert as I
+    from headforge.craft.generative import train as T
+    from headforge.craft.generative.data import face_texels
+
+    trainer, _ = T.load_trained(run, "stylegan2")
+    target = T.train_maps(run)[:1]
+    face = face_texels("open-head", 1, 32)
+    mask = np.zeros((32, 32), bool)
+    mask[:, 12:] = True
+    cfg = replace(I.InvertConfig.quick(), z_steps=10, dw_steps=0, noise_steps=0, w_avg_samples=100)
+    G = I._generator(trainer)
+    with torch.no_grad():
+        average = G.synthesis(G.mapping.w_avg[None, None].repeat(1, G.num_ws, 1))
+    tight = I.invert_partial(trainer, target, mask, face, replace(cfg, truncation=1e-6), noise=False)
+    free = I.invert_partial(trainer, target, mask, face, cfg, noise=False)
+    assert torch.allclose(tight.map, average, atol=1e-4)
+    assert (free.map - average).abs().max() > 1e-2
+    with pytest.raises(HeadforgeError, match="--truncation must be within"):
+        replace(cfg, truncation=0.0)
+
+
 # ---------------------------------------------------------------- the commands
 def test_craft_depth_fit_and_transfer_hair(bald, run, tmp_path):
     """craft depth -> craft fit (StyleGAN2 and PCA, scored against the scan) -> transfer-hair."""
@@ -337,6 +363,8 @@ def test_craft_fit_bad_inputs(bald, run, tmp_path):
     assert r.exit_code == 1 and "unknown --method 'vae'" in r.output
     r = cli("craft", "fit", root / "front.png", "--model", run, "-o", tmp_path / "o6", "--z-starts", 0)
     assert r.exit_code == 1 and "--z-starts must be 1 to 64" in r.output and not (tmp_path / "o6").exists()
+    r = cli("craft", "fit", root / "front.png", "--model", run, "-o", tmp_path / "o7", "--truncation", 1.5)
+    assert r.exit_code == 1 and "--truncation must be within (0, 1]" in r.output and not (tmp_path / "o7").exists()
     # a generator checkpoint of another resolution
     import shutil
 

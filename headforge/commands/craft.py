@@ -231,6 +231,8 @@ def fit(observation: Path = typer.Argument(..., help="a full scan (mesh file or 
         z_starts: int = typer.Option(1, help="StyleGAN2 depth fits: z initialisations fitted side by side (the paper: 1)"),
         combine: str = typer.Option("best", help="with --z-starts > 1: best (the start that fits the observation best) or "
                                                  "mean (the mean of all completions: closer to the scan on average, less detail)"),
+        truncation: float = typer.Option(1.0, help="StyleGAN2 depth fits: psi in (0, 1] pulling the z step's w toward the "
+                                                   "average w (the paper fits with 1; its samples use 0.7)"),
         steps_scale: float = typer.Option(1.0, help="multiply every optimisation step count (smoke runs)"),
         gt: Path | None = typer.Option(None, "--gt", help="ground-truth scan folder (headforge craft scans) to score against")) -> None:
     """Fit a trained HeadCraft model to a full scan or to one depth map / point cloud (App. B.1)."""
@@ -242,7 +244,7 @@ def fit(observation: Path = typer.Argument(..., help="a full scan (mesh file or 
         torch_threads()
         opts = FitOptions(method=method, preset=preset, camera=str(camera) if camera else None, depth_scale=depth_scale,
                           density=density, up=up, forward=forward, units=units, noise=noise, seed=seed,
-                          z_starts=z_starts, combine=combine, steps_scale=steps_scale)
+                          z_starts=z_starts, combine=combine, truncation=truncation, steps_scale=steps_scale)
         run_fit(observation, model_run, output, opts, gt, log=typer.echo)
     except HeadforgeError as exc:
         _fail(exc)

@@ -55,6 +55,7 @@ class FitOptions:
     seed: int = 0
     z_starts: int = 1  # StyleGAN2 depth fits: z initialisations (B.1: one); see InvertConfig
     combine: str = "best"  # with z_starts > 1: best | mean
+    truncation: float = 1.0  # StyleGAN2 depth fits: psi of the z step (B.1: none, i.e. 1); see InvertConfig
     steps_scale: float = 1.0  # multiplies every optimisation step count (smoke runs, tests)
 
 
@@ -271,7 +272,7 @@ def invert_config(options: FitOptions) -> I.InvertConfig:
         raise HeadforgeError(f"--steps-scale must be within (0, 10], got {options.steps_scale}")
     cfg = I.InvertConfig.preset(options.preset)
     k = options.steps_scale
-    cfg = replace(cfg, z_starts=options.z_starts, combine=options.combine)  # validated by InvertConfig
+    cfg = replace(cfg, z_starts=options.z_starts, combine=options.combine, truncation=options.truncation)  # validated by InvertConfig
     return replace(cfg, **{f: _scaled(getattr(cfg, f), k) for f in ("full_steps", "full_noise_steps", "z_steps", "dw_steps", "noise_steps")})
 
 

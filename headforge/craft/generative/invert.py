@@ -41,6 +41,7 @@ class InvertConfig:
     z_steps: int = 500  # B.1 depth map: z, then Delta-w, then noise
     z_starts: int = 1  # depth fits: z initialisations fitted side by side (B.1: one)
     combine: str = "best"  # z_starts > 1: "best" start by the observed loss after the z step, or the "mean" of all completions
+    truncation: float = 1.0  # depth fits: psi of w = w_avg + psi (map(z) - w_avg) in the z and Delta-w steps (B.1 fits without; its samples use 0.7)
     dw_steps: int = 500
     noise_steps: int = 500
     lr: float = 1e-2
@@ -58,6 +59,8 @@ class InvertConfig:
     def __post_init__(self):
         if not 1 <= self.z_starts <= 64 or self.combine not in ("best", "mean"):
             raise HeadforgeError(f"--z-starts must be 1 to 64 and --combine best or mean, got {self.z_starts} and {self.combine!r}")
+        if not 0 < self.truncation <= 1:
+            raise HeadforgeError(f"--truncation must be within (0, 1], got {self.truncation}")
 
     @classmethod
     def paper(cls) -> InvertConfig:
@@ -253,7 +256,11 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
     ``combine="best"`` continues with the start whose observed loss is lowest after the z step,
     ``"mean"`` carries all K through Delta-w and the (shared) noise step and returns the mean of
     their maps -- an estimate of the completion's posterior mean rather than one draw of it.
-    ``ws`` and ``z`` then hold every start kept: (K', num_ws, w_dim), (K', z_dim)."""
+    ``ws`` and ``z`` then hold every start kept: (K', num_ws, w_dim), (K', z_dim).
+
+    ``config.truncation`` psi < 1 maps each z to ``w_avg + psi (map(z) - w_avg)``: the z step then
+    searches a shrunken latent region around the average map (the truncation trick of the paper's
+    sampling, not of its fitting)."""
     start = time.perf_counter()
     G = _generator(trainer)
     U = _as_batch(target)
@@ -274,18 +281,21 @@ def invert_partial(trainer, target, mask: np.ndarray, face: np.ndarray, config: 
         # Summed over the batch: each start's gradient is its own loss's (Adam is scale-free anyway).
         return sum(config.perceptual * perc(o * M, U * M) + config.l1 * ((o - U) * M).abs().mean() for o in out.split(1))
 
+    def ws_of(zz):
+        return G.ws(zz, truncation=config.truncation)
+
     def z_loss():
-        return observed_terms(G.synthesis(G.ws(z)))
+        return observed_terms(G.synthesis(ws_of(z)))
 
     _loop([z], config.z_steps, config.lr, z_loss, hist["z"], progress, "z")
     z = z.detach()
     if config.z_starts > 1 and config.combine == "best":
         with torch.no_grad():
-            losses = torch.stack([observed_terms(G.synthesis(G.ws(zk[None]))) for zk in z])
+            losses = torch.stack([observed_terms(G.synthesis(ws_of(zk[None]))) for zk in z])
         hist["z_start_losses"] = losses.tolist()
         z = z[int(losses.argmin())][None]
     with torch.no_grad():
-        w_z = G.ws(z)
+        w_z = ws_of(z)
         ref = G.synthesis(w_z)
     dw = torch.zeros_like(w_z, requires_grad=True)
 
