@@ -373,7 +373,7 @@ def _summary(records, full_records, fit_seconds) -> dict:
         s["target_unseen_beats_all"] = bool(s["completion_unseen_mm"] < base_unseen)
         s["target_observed_within_10pct"] = bool(s["completion_observed_mm"] <= 1.1 * base_obs)
         s["fit_seconds"] = float(statistics.median(fit_seconds)) if fit_seconds else None
-    else:  # --no-partial: no completion was measured, so no figure and no verdict (null, never NaN or false)
+    else:  # no completion measured (--no-partial, or every observation failed): no figure, no verdict (null, never NaN or false)
         s = {k: (v if k in ("n_scans", "n_observations", "failed") else None) for k, v in s.items()}
         s.update(target_unseen_beats_all=None, target_observed_within_10pct=None, fit_seconds=None)
     if full_records:
