@@ -357,31 +357,38 @@ def _mean(records, method, region, key="chamfer_mm"):
 
 
 def _summary(records, full_records, fit_seconds) -> dict:
+    """The final JSON line. Without a completed observation (--no-partial, or every observation
+    failed) the completion figures and verdicts are null: never NaN or a false verdict."""
     ok = [r for r in records if "methods" in r]
-    s = {"n_scans": len({r["scan"] for r in records}), "n_observations": len(ok), "failed": len(records) - len(ok),
-         "completion_chamfer_mm": _mean(ok, "stylegan2", "all"),
-         "completion_unseen_mm": _mean(ok, "stylegan2", "unseen"),
-         "completion_observed_mm": _mean(ok, "stylegan2", "observed"),
-         "completion_unseen_back_hair_mm": _mean(ok, "stylegan2", "unseen_back_hair")}
+    s = {"n_scans": len({r["scan"] for r in records}), "n_observations": len(ok), "failed": len(records) - len(ok)}
+    figure = (lambda m, region: _mean(ok, m, region)) if ok else (lambda m, region: None)  # noqa: E731
+    s.update(completion_chamfer_mm=figure("stylegan2", "all"), completion_unseen_mm=figure("stylegan2", "unseen"),
+             completion_observed_mm=figure("stylegan2", "observed"),
+             completion_unseen_back_hair_mm=figure("stylegan2", "unseen_back_hair"))
     for m, key in (("mean", "mean_map"), ("pca", "pca"), ("bare", "bare_head")):
-        s[f"{key}_unseen_mm"] = _mean(ok, m, "unseen")
-        s[f"{key}_observed_mm"] = _mean(ok, m, "observed")
-        s[f"{key}_chamfer_mm"] = _mean(ok, m, "all")
+        s[f"{key}_unseen_mm"] = figure(m, "unseen")
+        s[f"{key}_observed_mm"] = figure(m, "observed")
+        s[f"{key}_chamfer_mm"] = figure(m, "all")
+    s["target_unseen_beats_all"] = s["target_observed_within_10pct"] = s["fit_seconds"] = None
     if ok:
         base_unseen = min(s["mean_map_unseen_mm"], s["pca_unseen_mm"], s["bare_head_unseen_mm"])
         base_obs = min(s["mean_map_observed_mm"], s["pca_observed_mm"], s["bare_head_observed_mm"])
         s["target_unseen_beats_all"] = bool(s["completion_unseen_mm"] < base_unseen)
         s["target_observed_within_10pct"] = bool(s["completion_observed_mm"] <= 1.1 * base_obs)
         s["fit_seconds"] = float(statistics.median(fit_seconds)) if fit_seconds else None
-    else:  # no completion measured (--no-partial, or every observation failed): no figure, no verdict (null, never NaN or false)
-        s = {k: (v if k in ("n_scans", "n_observations", "failed") else None) for k, v in s.items()}
-        s.update(target_unseen_beats_all=None, target_observed_within_10pct=None, fit_seconds=None)
     if full_records:
         s["n_full_scans"] = len(full_records)
-        for m in ("registration", "stylegan2", "pca"):
-            s[f"full_{m}_chamfer_mm"] = float(np.mean([r[m]["all"]["chamfer_mm"] for r in full_records]))
+        s.update({f"full_{m}_chamfer_mm": v for m, v in _full_means(full_records).items()})
         s["full_stylegan2_seconds"] = float(statistics.median([r["stylegan2"]["seconds"] for r in full_records]))
     return s
+
+
+FULL_COLUMNS = ("registration", "stylegan2", "pca")
+
+
+def _full_means(full_records) -> dict[str, float]:
+    """Mean whole-head Chamfer (mm) of the full-scan fits, per column of FULL_COLUMNS."""
+    return {m: float(np.mean([r[m]["all"]["chamfer_mm"] for r in full_records])) for m in FULL_COLUMNS}
 
 
 def _table(records, full_records) -> str:
@@ -392,10 +399,9 @@ def _table(records, full_records) -> str:
     if full_records:
         lines += ["", "| full-scan fit, Chamfer mm | registration | stylegan2 | pca |", "| --- | --- | --- | --- |"]
         for r in full_records:
-            lines.append(f"| {r['scan']} ({r['hair_style']}, {r['variant']}) | {r['registration']['all']['chamfer_mm']:.2f} | "
-                         f"{r['stylegan2']['all']['chamfer_mm']:.2f} | {r['pca']['all']['chamfer_mm']:.2f} |")
-        lines.append(f"| mean ({len(full_records)}) | " + " | ".join(
-            f"{np.mean([r[m]['all']['chamfer_mm'] for r in full_records]):.2f}" for m in ("registration", "stylegan2", "pca")) + " |")
+            lines.append(f"| {r['scan']} ({r['hair_style']}, {r['variant']}) | "
+                         + " | ".join(f"{r[m]['all']['chamfer_mm']:.2f}" for m in FULL_COLUMNS) + " |")
+        lines.append(f"| mean ({len(full_records)}) | " + " | ".join(f"{v:.2f}" for v in _full_means(full_records).values()) + " |")
     return "\n".join(lines).strip("\n") + "\n"
 
 
