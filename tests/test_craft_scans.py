@@ -108,6 +108,39 @@ def test_hair_styles(style, data):
         assert hv[:, 1].min() < -0.12  # down below the jaw
 
 
+def test_banded_grid_values_match_the_full_evaluation_near_the_surface():
+    from headforge.craft.scans import banded_grid_values
+
+    axes = [np.linspace(-0.1, 0.1, 41), np.linspace(-0.1, 0.12, 45), np.linspace(-0.1, 0.1, 40)]
+    calls = []
+
+    def sphere(p):
+        calls.append(len(p))
+        return np.linalg.norm(p - 0.01, axis=1) - 0.06
+
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    full = sphere(grid.reshape(-1, 3)).reshape(grid.shape[:3])
+    calls.clear()
+    band = banded_grid_values(axes, sphere, margin=0.02)
+    near = np.abs(full) < 0.01
+    assert np.array_equal(band[near], full[near])  # exact near the zero level
+    assert np.array_equal(np.sign(band), np.sign(full))
+    assert np.abs(band - full).max() < 0.005  # interpolated elsewhere
+    assert sum(calls) < 0.6 * full.size  # and fewer evaluations
+
+
+@pytest.mark.parametrize("style", ["bob", "bun"])
+def test_banded_hair_volume_is_the_full_one(style, data, monkeypatch):
+    from headforge.craft import scans
+
+    v, f, scalp = data.v_template, data.faces, data.regions["scalp"]
+    banded = scans.build_hair_volume(style, v, f, scalp, 0.006, seed=0)
+    monkeypatch.setattr(scans, "banded_grid_values", lambda axes, evaluate, margin: evaluate(
+        np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape([len(a) for a in axes]))
+    full = scans.build_hair_volume(style, v, f, scalp, 0.006, seed=0)
+    assert np.array_equal(banded[0], full[0]) and np.array_equal(banded[1], full[1])
+
+
 def test_bald_has_no_hair(data):
     from headforge.craft.scans import build_hair_volume
 

@@ -190,6 +190,42 @@ def _style_sdf(style: str, points: np.ndarray, dist: np.ndarray, scalp_w: np.nda
     return sdf
 
 
+def banded_grid_values(axes: list[np.ndarray], evaluate, margin: float) -> np.ndarray:
+    """(len(axes[0]), len(axes[1]), len(axes[2])) values of a signed-distance-like field on the
+    grid of ``axes`` (metres), evaluated exactly only near its zero level: ``evaluate`` (P, 3)
+    points -> (P,) runs on every second grid point first, then on the fine points of each coarse
+    cell that has a corner within ``margin`` of zero or corners of both signs; the others get
+    the coarse values' trilinear interpolation. Marching cubes reads values only at the ends of
+    sign-changing edges, so its surface is the full evaluation's wherever the field changes by
+    less than ``margin`` over a coarse cell (tests/test_craft_scans.py compares the two); the
+    k-d tree queries far from the surface are the slow ones, and they are the ones skipped."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    def points(ix):
+        return np.stack(np.meshgrid(*[a[i] for a, i in zip(axes, ix)], indexing="ij"), -1).reshape(-1, 3)
+
+    coarse_ix = [np.unique(np.r_[np.arange(0, len(a), 2), len(a) - 1]) for a in axes]
+    coarse = evaluate(points(coarse_ix)).reshape([len(i) for i in coarse_ix])
+    if min(coarse.shape) < 2:
+        return evaluate(points([np.arange(len(a)) for a in axes])).reshape([len(a) for a in axes])
+    corners = np.stack([coarse[a:coarse.shape[0] - 1 + a, b:coarse.shape[1] - 1 + b, c:coarse.shape[2] - 1 + c]
+                        for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    near = (np.abs(corners).min(0) < margin) | ((corners.min(0) < 0) & (corners.max(0) > 0))
+    # the coarse cell of each fine index along each axis
+    cell = [np.clip(np.searchsorted(ci, np.arange(len(a)), side="right") - 1, 0, len(ci) - 2)
+            for a, ci in zip(axes, coarse_ix)]
+    exact = near[np.ix_(*cell)]
+    full_shape = [len(a) for a in axes]
+    fine = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    values = np.empty(full_shape)
+    if exact.any():
+        values[exact] = evaluate(fine[exact])
+    far = ~exact
+    if far.any():
+        values[far] = RegularGridInterpolator([a[i] for a, i in zip(axes, coarse_ix)], coarse)(fine[far])
+    return values
+
+
 def build_hair_volume(style: str, vertices: np.ndarray, faces: np.ndarray, scalp: np.ndarray, voxel: float,
                       seed: int):
     """Hair for a rest head (headforge axes): (hair vertices, hair faces, sdf sampler) or
@@ -215,12 +251,16 @@ def build_hair_volume(style: str, vertices: np.ndarray, faces: np.ndarray, scalp
     hi = vertices[scalp].max(0) + np.array([0.05, 0.05, 0.06])
     shape = np.ceil((hi - lo) / voxel).astype(int) + 1
     axes = [lo[k] + voxel * np.arange(shape[k]) for k in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     from scipy.spatial import cKDTree
 
-    dist, nearest = cKDTree(samples).query(grid, workers=torch.get_num_threads())
-    sign = np.sign(((grid - samples[nearest]) * normals[nearest]).sum(1))
-    sdf = _style_sdf(style, grid, dist * sign, sample_w[nearest]).reshape(*shape)
+    tree = cKDTree(samples)
+
+    def style_sdf_at(points: np.ndarray) -> np.ndarray:
+        dist, nearest = tree.query(points, workers=torch.get_num_threads())
+        sign = np.sign(((points - samples[nearest]) * normals[nearest]).sum(1))
+        return _style_sdf(style, points, dist * sign, sample_w[nearest])
+
+    sdf = banded_grid_values(axes, style_sdf_at, margin=6 * voxel)
     sdf = np.pad(sdf, 1, constant_values=1.0)
     verts, tris, _, _ = marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3)
     verts = verts + lo - voxel
