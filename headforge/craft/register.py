@@ -91,7 +91,7 @@ class RegisterConfig:
     shape_prior: float = 1e-3
     expression_prior: float = 1e-3
     scan_points: int = 100_000  # area-uniform scan samples for the Chamfer term
-    nn_every: int = 1  # recompute the scan->template correspondences every n steps
+    nn_every: int = 1  # recompute the correspondences (both directions) every n steps
     clip_units: float = 20.0  # displacement clip range (paper units): +-167 mm
     stage1: StageConfig = field(default_factory=_stage1)
     stage2: StageConfig = field(default_factory=_stage2)
@@ -315,16 +315,16 @@ class Losses:
         self.scan_tree = cKDTree(self.scan.numpy())
         self.config = config
         self.template_mask = template_mask
-        self._back = None
+        self._fwd = self._back = None
 
     def chamfer(self, x: torch.Tensor, step: int, prune: float) -> tuple[torch.Tensor, dict]:
         from scipy.spatial import cKDTree
 
-        xn = x.detach().numpy()
-        d1, fwd = self.scan_tree.query(xn, workers=self.config.threads)
         if self._back is None or step % self.config.nn_every == 0:
+            xn = x.detach().numpy()
+            _, self._fwd = self.scan_tree.query(xn, workers=self.config.threads)
             _, self._back = cKDTree(xn).query(self.scan.numpy(), workers=self.config.threads)
-        fwd_t, back_t = torch.as_tensor(fwd), torch.as_tensor(self._back)
+        fwd_t, back_t = torch.as_tensor(self._fwd), torch.as_tensor(self._back)
         a = (x - self.scan[fwd_t]).norm(dim=-1)
         b = (self.scan - x[back_t]).norm(dim=-1)
         ka, kb = a.detach() <= prune, b.detach() <= prune
