@@ -109,7 +109,7 @@ def test_hair_styles(style, data):
 
 
 def test_banded_grid_values_match_the_full_evaluation_near_the_surface():
-    from headforge.craft.scans import banded_grid_values
+    from headforge.craft.scans import banded_grid_values, full_grid_values
 
     axes = [np.linspace(-0.1, 0.1, 41), np.linspace(-0.1, 0.12, 45), np.linspace(-0.1, 0.1, 40)]
     calls = []
@@ -118,8 +118,7 @@ def test_banded_grid_values_match_the_full_evaluation_near_the_surface():
         calls.append(len(p))
         return np.linalg.norm(p - 0.01, axis=1) - 0.06
 
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
-    full = sphere(grid.reshape(-1, 3)).reshape(grid.shape[:3])
+    full = full_grid_values(axes, sphere)
     calls.clear()
     band = banded_grid_values(axes, sphere, margin=0.02)
     near = np.abs(full) < 0.01
@@ -135,8 +134,7 @@ def test_banded_hair_volume_is_the_full_one(style, data, monkeypatch):
 
     v, f, scalp = data.v_template, data.faces, data.regions["scalp"]
     banded = scans.build_hair_volume(style, v, f, scalp, 0.006, seed=0)
-    monkeypatch.setattr(scans, "banded_grid_values", lambda axes, evaluate, margin: evaluate(
-        np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape([len(a) for a in axes]))
+    monkeypatch.setattr(scans, "banded_grid_values", lambda axes, evaluate, margin: scans.full_grid_values(axes, evaluate))
     full = scans.build_hair_volume(style, v, f, scalp, 0.006, seed=0)
     assert np.array_equal(banded[0], full[0]) and np.array_equal(banded[1], full[1])
 

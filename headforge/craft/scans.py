@@ -190,6 +190,12 @@ def _style_sdf(style: str, points: np.ndarray, dist: np.ndarray, scalp_w: np.nda
     return sdf
 
 
+def full_grid_values(axes: list[np.ndarray], evaluate) -> np.ndarray:
+    """``evaluate`` (P, 3) points -> (P,) at every point of the grid of ``axes``, shaped as the grid."""
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return evaluate(grid).reshape([len(a) for a in axes])
+
+
 def banded_grid_values(axes: list[np.ndarray], evaluate, margin: float) -> np.ndarray:
     """(len(axes[0]), len(axes[1]), len(axes[2])) values of a signed-distance-like field on the
     grid of ``axes`` (metres), evaluated exactly only near its zero level: ``evaluate`` (P, 3)
@@ -201,13 +207,10 @@ def banded_grid_values(axes: list[np.ndarray], evaluate, margin: float) -> np.nd
     k-d tree queries far from the surface are the slow ones, and they are the ones skipped."""
     from scipy.interpolate import RegularGridInterpolator
 
-    def points(ix):
-        return np.stack(np.meshgrid(*[a[i] for a, i in zip(axes, ix)], indexing="ij"), -1).reshape(-1, 3)
-
     coarse_ix = [np.unique(np.r_[np.arange(0, len(a), 2), len(a) - 1]) for a in axes]
-    coarse = evaluate(points(coarse_ix)).reshape([len(i) for i in coarse_ix])
-    if min(coarse.shape) < 2:
-        return evaluate(points([np.arange(len(a)) for a in axes])).reshape([len(a) for a in axes])
+    if min(len(i) for i in coarse_ix) < 2:
+        return full_grid_values(axes, evaluate)
+    coarse = full_grid_values([a[i] for a, i in zip(axes, coarse_ix)], evaluate)
     corners = np.stack([coarse[a:coarse.shape[0] - 1 + a, b:coarse.shape[1] - 1 + b, c:coarse.shape[2] - 1 + c]
                         for a in (0, 1) for b in (0, 1) for c in (0, 1)])
     near = (np.abs(corners).min(0) < margin) | ((corners.min(0) < 0) & (corners.max(0) > 0))
