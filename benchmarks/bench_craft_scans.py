@@ -28,6 +28,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="torch / k-d tree threads (craft scans' workers use 1)")
     args = ap.parse_args(argv)
+    if not 0.001 <= args.voxel <= 0.01 or args.repeats < 1 or args.threads < 1:
+        ap.error("--voxel must be within [0.001, 0.01] m, --repeats and --threads at least 1")
 
     import torch
     from scipy.spatial import cKDTree

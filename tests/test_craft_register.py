@@ -71,6 +71,31 @@ def test_prune_schedule_coarse_to_fine():
     assert all(ramp.prune_at(k) >= ramp.prune_at(k + 1) for k in range(99))
 
 
+def test_correspondences_refresh_every_nn_every_steps(monkeypatch):
+    """Both directions' nearest neighbours are queried only on refresh steps (the quick preset's
+    speed-up); in between the distances follow the moving template with the cached pairs."""
+    import scipy.spatial
+    import torch
+
+    from headforge.craft import register as R
+
+    queries = []
+
+    class CountingTree(scipy.spatial.cKDTree):
+        def query(self, *args, **kwargs):
+            queries.append(1)
+            return super().query(*args, **kwargs)
+
+    monkeypatch.setattr(scipy.spatial, "cKDTree", CountingTree)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    scan = np.random.default_rng(0).normal(size=(50, 3)) * 0.01
+    losses = R.Losses(faces, 4, scan, replace(R.RegisterConfig.quick(), nn_every=4))
+    x = torch.as_tensor(scan[:4] * R.PAPER_UNITS_PER_M, dtype=torch.float64)
+    terms = [losses.chamfer(x + 0.1 * step, step, prune=100.0)[0] for step in range(8)]
+    assert len(queries) == 4  # steps 0 and 4, two directions each
+    assert float(terms[1]) != float(terms[0])  # the cached pairs, the moved template
+
+
 def test_outer_face_is_the_face_beyond_the_inner_landmarks(template):
     import torch
     from scipy.spatial import cKDTree
