@@ -24,20 +24,22 @@ import sys
 import numpy as np
 
 from headforge.craft.generative.data import load_maps, texel_islands
+from headforge.craft.generative.evaluate import scalp_distances
 from headforge.errors import HeadforgeError
 
 
-def scalp_rows(folder: str, size: int) -> np.ndarray:
-    """(N, 3 * scalp texels) metres: every map's scalp texels (island 0), faces replaced (A.2)."""
+def load_with_scalp(folder: str, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Maps (N, size, size, 3) metres, faces replaced (A.2), and the scalp texels (island 0)."""
     ms = load_maps(folder, size)
-    scalp = texel_islands(ms.head_model, ms.levels, ms.size) == 0
-    return ms.maps[:, scalp].reshape(len(ms.maps), -1)
+    return ms.maps, texel_islands(ms.head_model, ms.levels, ms.size) == 0
 
 
-def span(train: np.ndarray, held: np.ndarray, ks: list[int]) -> dict:
-    """Residuals (mm, RMS per texel over the 3 channels' texel vectors) of ``held`` rows after
-    projection on the top-k principal directions of ``train`` rows."""
-    texels = train.shape[1] / 3
+def span(train_maps: np.ndarray, held_maps: np.ndarray, scalp: np.ndarray, ks: list[int]) -> dict:
+    """Residuals (mm, RMS per scalp texel) of the held-out maps' scalp texels after projection on
+    the top-k principal directions of the training maps' scalp texels."""
+    train = train_maps[:, scalp].reshape(len(train_maps), -1)
+    held = held_maps[:, scalp].reshape(len(held_maps), -1)
+    texels = scalp.sum()
     mean = train.mean(0)
     _, s, vt = np.linalg.svd(train - mean, full_matrices=False)
     var = np.cumsum(s ** 2) / (s ** 2).sum()
@@ -48,7 +50,7 @@ def span(train: np.ndarray, held: np.ndarray, ks: list[int]) -> dict:
         k = min(k, len(vt))
         coeff = h @ vt[:k].T
         residual[k] = float(np.median(rms(h - coeff @ vt[:k])))
-    nn = np.sqrt(((held[:, None] - train[None]) ** 2).sum(-1) / texels).min(1) * 1000
+    nn = scalp_distances(held_maps, train_maps, scalp)[1]
     return {"heldout_rms_mm": float(np.median(rms(h))), "heldout_nn_mm": float(np.median(nn)),
             "residual_mm": residual,
             **{f"components_for_{p}pct": int(np.searchsorted(var, p / 100) + 1) for p in (90, 95, 99)}}
@@ -61,12 +63,12 @@ def main() -> int:
     ap.add_argument("--size", type=int, default=64, help="map size the models train at (quick preset: 64)")
     args = ap.parse_args()
     try:
-        train, held = scalp_rows(args.train, args.size), scalp_rows(args.held, args.size)
+        (train, scalp), (held, _) = load_with_scalp(args.train, args.size), load_with_scalp(args.held, args.size)
     except HeadforgeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     ks = [k for k in (1, 2, 4, 8, 16, 32, 64, 128, 256) if k < len(train)] + [len(train) - 1]
-    out = {"train_maps": len(train), "heldout_maps": len(held), "size": args.size, **span(train, held, ks)}
+    out = {"train_maps": len(train), "heldout_maps": len(held), "size": args.size, **span(train, held, scalp, ks)}
     print("| components k | held-out scalp RMS residual (mm) |\n| --- | --- |")
     for k, r in out["residual_mm"].items():
         print(f"| {k} | {r:.2f} |")
