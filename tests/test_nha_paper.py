@@ -317,3 +317,25 @@ def test_render_avatar_takes_the_driving_mode(rendered, tmp_path, tiny_head):
     res = runner.invoke(app, ["render", "avatar", str(tmp_path / "run"), "-o", str(tmp_path / "x.mp4"),
                               "--driving", str(driver), "--driving-mode", "sideways"])
     assert res.exit_code != 0 and "driving-mode" in str(res.exception) + res.output
+
+
+@pytest.mark.parametrize("per_level", [True, False])
+def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_level):
+    """A smooth offset field costs about the same on the 4-way subdivided template as on the
+    tracked one with ``laplacian_per_level``; without it the umbrella Laplacian, which shrinks with
+    the squared edge length, charges the subdivided template about 16 times less."""
+    costs = []
+    for subdivide in (False, True):
+        config = NHAConfig.quick()
+        config.laplacian_face_cut, config.laplacian_per_level = False, per_level
+        template = build_template(tiny_head, subdivide, False)
+        avatar = NeuralHeadAvatar(template, _tracking(template), config)
+        avatar.laplacian_weight.fill_(1.0)
+        v = torch.as_tensor(template.v_template, dtype=torch.float32) / 0.1  # the unit sphere
+        offsets = torch.stack([10 * v[:, 0] ** 2, 5 * v[:, 1] * v[:, 2], torch.zeros(len(v))], -1)[None]  # mm
+        costs.append(float(avatar.laplacian_term(offsets)))
+    ratio = costs[1] / costs[0]
+    if per_level:
+        assert 0.5 < ratio < 2.0
+    else:
+        assert 1 / 32 < ratio < 1 / 8

@@ -51,6 +51,7 @@ class NHAConfig(EngineConfig):
     laplacian_top_back_factor: float = 1.0  # times laplacian_scalp on the scalp's unseen top-back; 0.2 costs bob 2 deg (docs/nha_table1.md)
     laplacian_face_cut: bool = True  # the face's Laplacian ignores scalp neighbours: 17.48 -> 16.29 deg (docs/nha_table1.md)
     laplacian_scalp_shell: bool = False  # Laplacian on the hair's thickness, not its offset; worse on curly and bob (docs/nha_table1.md)
+    laplacian_per_level: bool = True  # the umbrella Laplacian x4 per subdivision level: the subdivided bob tore without (docs/nha_table1.md)
     shading: bool = False  # beyond NHA: albedo x learned SH; costs talking_bun 1.07 dB at w_rgb 5, the hair does not flatten (docs/nha_table1.md)
     w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
@@ -90,7 +91,7 @@ class NHAConfig(EngineConfig):
         return cls(resolution=512, laplacian_regions="table3", laplacian_operator="cotangent", laplacian_norm="l1",
                    laplacian_face_cut=False, edge_mode="mean", tex_last_width=128, tex_mapping_width=256,
                    mouth_condition="neck10", close_mouth=True, tex_weight_decay=1e-4, stage_epochs=(150, 100, 50),
-                   early_stop_frames=8, w_normal_abs=0.0)
+                   early_stop_frames=8, w_normal_abs=0.0, laplacian_per_level=False)
 
     CHOICES = {"laplacian_regions": ("headforge", "table3"), "laplacian_operator": ("uniform", "cotangent"),
                "laplacian_norm": ("squared", "l1"), "edge_mode": ("template", "mean"),

@@ -210,6 +210,11 @@ class NeuralHeadAvatar(Avatar):
         lap[scalp_top_back(rest, scalp)] *= config.laplacian_top_back_factor
         self.register_buffer("laplacian_weight", lap)
         self.laplacian_l1 = config.laplacian_norm == "l1"
+        # A smooth offset field's umbrella Laplacian shrinks with the squared edge length: each 4-way
+        # subdivision halves the edges, so without this factor the subdivided template's prior is
+        # 16 times weaker (squared norm) than the one the weights were chosen on (a Python float).
+        levels = int(template.meta.get("subdivided", 0))
+        self.laplacian_scale = 4.0 ** levels if config.laplacian_per_level else 1.0
         # Laplace-Beltrami (cotangent) weights of the template's 1-ring, fixed (App. A.3's lambda*)
         self.cotangent = config.laplacian_operator == "cotangent"
         cot_edges, cot_weights = (cotangent_weights(template.v_template, template.faces) if self.cotangent
@@ -475,7 +480,11 @@ class NeuralHeadAvatar(Avatar):
         Laplace-Beltrami operator (``laplacian_operator`` cotangent), L1 over the components
         (``laplacian_norm`` l1), Table 3's weights doubled in the ``joint`` stage. On
         ``shell_vertices`` the Laplacian is that of (tangential offset, thickness along the
-        template normal) instead."""
+        template normal) instead. On a subdivided template the offsets are scaled by
+        ``laplacian_scale`` first (``laplacian_per_level``), so a smooth field costs what it costs
+        on the tracked template."""
+        if self.laplacian_scale != 1.0:
+            offsets = offsets * self.laplacian_scale
         norm = (lambda d: d.abs().sum(-1)) if self.laplacian_l1 else (lambda d: d.pow(2).sum(-1))  # noqa: E731
         energy = norm(self._laplacian(offsets))
         if self.shell_laplacian:
