@@ -323,7 +323,7 @@ def test_render_avatar_takes_the_driving_mode(rendered, tmp_path, tiny_head):
 def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_level):
     """A smooth offset field costs about the same on the 4-way subdivided template as on the
     tracked one with ``laplacian_per_level``; without it the umbrella Laplacian, which shrinks with
-    the squared edge length, charges the subdivided template about 16 times less."""
+    the squared edge length, charges the subdivided template 10-16 times less (a tenth here)."""
     costs = []
     for subdivide in (False, True):
         config = NHAConfig.quick()
