@@ -23,7 +23,8 @@ from headforge.metrics.benchmark import evaluate_geometry, paired_normal_error
 
 PAIRED = ("normal_error_head_deg", "normal_error_face_deg")
 KEYS = ("normal_error_head_deg", "normal_error_face_deg", "hausdorff_full_mm", "hausdorff_face_mm",
-        "hausdorff_full_camera_mm", "normal_consistency", "hausdorff_full_outer_mm", "head_coverage")
+        "hausdorff_full_camera_mm", "normal_consistency", "hausdorff_full_outer_mm", "hausdorff_full_scaled_mm",
+        "hausdorff_face_scaled_mm", "alignment_scale", "normal_consistency_scaled", "head_coverage")
 
 
 def main() -> None:

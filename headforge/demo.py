@@ -15,7 +15,7 @@ from pathlib import Path
 from headforge.paths import publish_report
 
 GEOMETRY_FIGURES = ("normal_error_head_deg", "hausdorff_full_mm", "hausdorff_face_mm", "hausdorff_full_outer_mm",
-                    "head_coverage")
+                    "hausdorff_full_scaled_mm", "head_coverage")
 
 
 DEFAULT_ITERATIONS = {"nha": 900, "pointavatar": 1500}

@@ -283,3 +283,30 @@ def test_landmark_scores_split_akd_by_face_region():
             np.testing.assert_allclose(s[f"akd_{name}_px"], 0.0)
     np.testing.assert_allclose(s["eye_opening_error_px"], 0.0)
     assert "akd_lips_px" not in landmark_scores(pred, truth)
+
+
+def test_similarity_alignment_recovers_a_scaled_head():
+    """A head s times too large (what a monocular clip cannot tell from one s times farther):
+    the rigid face alignment leaves millimetres, the similarity alignment finds 1/s and puts the
+    face back on the GT."""
+    from headforge.metrics.benchmark import _face_samples, _icp_to_face, _moved, similarity_to_face, transform_scale
+
+    gt = trimesh.creation.icosphere(subdivisions=4)
+    gt.apply_scale([0.075, 0.1, 0.09])  # an ellipsoid head (m): no symmetry lets a shift stand in for a scale
+    gt.apply_translation([0.0, 0.0, 0.9])
+    gv, gf = np.asarray(gt.vertices), np.asarray(gt.faces)
+    face_vertices = (gv[:, 2] < 0.9 - 0.03) & (gv[:, 1] > -0.06)  # the camera-facing front, cut unevenly
+    s = 1.12
+    angle = np.deg2rad(3.0)
+    rot = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    pred = s * (gv - gv.mean(0)) @ rot.T + gv.mean(0) + [0.004, -0.002, 0.06]  # larger, turned, farther
+    pred_face_faces = gf[face_vertices[gf].all(1)]
+    source = _face_samples(pred, pred_face_faces)
+    rigid = _icp_to_face(source, gv, gf, face_vertices)
+    similar = similarity_to_face(source, gv, gf, np.ones(len(gv), bool), rigid)
+    assert transform_scale(similar) == pytest.approx(1 / s, rel=0.01)
+    front = trimesh.Trimesh(gv, pred_face_faces, process=False)
+    d_rigid = geometry.points_to_mesh(_moved(source, rigid), gv, gf)
+    d_similar = geometry.points_to_mesh(_moved(source, similar), gv, gf)
+    assert d_rigid.mean() > 2e-3 and d_similar.mean() < 3e-4
+    assert front.area > 0

@@ -92,6 +92,7 @@ def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets)
     assert m["hausdorff_full_camera_mm"] < 0.01 and m["hausdorff_face_camera_mm"] < 0.01
     assert m["hausdorff_full_mm"] < 0.3 and m["hausdorff_face_mm"] < 0.3  # the ICP settles within 0.3 mm
     assert m["hausdorff_full_outer_mm"] < 0.3  # sampled on the outer surface only
+    assert m["hausdorff_full_scaled_mm"] < 0.3 and m["alignment_scale"] == pytest.approx(1, abs=0.01)
     assert m["normal_error_face_deg"] < 8 and m["normal_error_head_deg"] < 10
     assert m["face_points"] > 0.2 * m["head_points"] and m["head_points"] >= 1990  # ~every point is on the head
     R = int(json.loads((subject / "gt" / "subject.json").read_text())["resolution"])

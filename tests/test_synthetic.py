@@ -135,6 +135,8 @@ def test_geometry_eval_of_the_tracked_baseline(bench, open_head_data):
     assert 3 < m["normal_error_head_deg"] < 40
     assert 0.3 < m["hausdorff_face_mm"] < 8  # tracked face within millimetres after alignment
     assert m["hausdorff_face_mm"] <= m["hausdorff_face_camera_mm"] + 0.5
+    # a free scale can only bring the face closer; a tracked head is within a quarter of its size
+    assert m["hausdorff_face_scaled_mm"] <= m["hausdorff_face_mm"] + 0.3 and 0.8 < m["alignment_scale"] < 1.25
     assert 0.7 < m["normal_consistency"] <= 1
     # the bald head model lies under the short hair: farther from the outer surface alone
     assert m["hausdorff_full_outer_mm"] > m["hausdorff_full_mm"]

@@ -10,6 +10,11 @@ For every ground-truth frame of the chosen split (``gt/geometry.safetensors`` li
   rigid ICP alignment of the predicted face to the GT face (the 3DFAW-video protocol NHA cites:
   a monocular reconstruction is known up to depth; NHA's FLAME row, 1.2-1.4 mm on the face,
   is only possible aligned), and without alignment in camera space (``*_camera_mm``);
+  ``*_scaled_mm`` after a similarity alignment instead (rotation, translation and one scale,
+  :func:`similarity_to_face`, as the NoW benchmark aligns monocular face reconstructions: a
+  monocular clip fixes the head's size only through the head model's prior), with
+  ``alignment_scale`` its factor (> 1: the prediction was smaller than the GT) and
+  ``normal_consistency_scaled`` the normal consistency after it;
 - normal consistency between prediction samples and the GT surface (PointAvatar);
 - two figures beside the protocol, to read it by: ``hausdorff_full_outer_mm``, the aligned
   full-head distance to the GT's *outer* surface only (the GT meshes, like NHA's MakeHuman ones,
@@ -49,7 +54,7 @@ for points as follows:
   in every frame), a mean over points rather than over area; ``*_camera_mm`` in camera space,
   the others after the rigid ICP alignment of the face points to the GT face samples (the mesh
   protocol's alignment with the points as its source), ``hausdorff_full_outer_mm`` aligned to the
-  GT's outer surface.
+  GT's outer surface, ``*_scaled_mm`` after the similarity alignment of the same face points.
 - normal consistency: as for meshes, mean ``|cos|`` between nearest neighbours, both directions,
   of the aligned head points (at most 4000, with their normals turned by the alignment) and the
   GT surface samples closest to them (with the GT face normals). ``|cos|`` ignores orientation:
@@ -322,13 +327,61 @@ def _icp_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
     return min(fits, key=lambda fit: fit[2])[0]
 
 
+def similarity_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray, gt_skin_vertices: np.ndarray,
+                       initial: np.ndarray, iterations: int = 300, trim: float = 0.9) -> np.ndarray:
+    """(4, 4) similarity transform (rotation, translation and one scale factor: NoW's "rigid
+    alignment (rotation, translation, and scaling)") taking the prediction's face points
+    ``source`` (S, 3) onto the GT skin, refined from ``initial`` (the rigid face alignment).
+
+    A monocular clip fixes a head only up to a scale about the camera (a head s times larger, s
+    times farther, gives the same images), so a tracked head of the average size sits larger
+    and farther than a small subject's. Point-to-point ICP with a free scale, each face point
+    paired with its nearest of 60,000 samples of the GT head's skin (``gt_skin_vertices`` (V,)
+    bool: the head without the hair, whose fringe would otherwise take the forehead), the farthest
+    ``1 - trim`` of the pairs dropped, Umeyama's least squares on the rest. The target is the
+    whole skin, not the GT face region, because the prediction's face region never matches the
+    GT's: onto the face alone, a free scale shrinks the source into it (0.85 on a tracked head
+    that is 0.97 here). Exact on a point set sampled on the GT (scale 1.000 ± 0.001); stops
+    when an iteration moves the transform by less than 1e-7 (point-to-point ICP creeps along the
+    scale: ~100 iterations)."""
+    from scipy.spatial import cKDTree
+
+    skin = trimesh.Trimesh(gt_verts, gt_faces[gt_skin_vertices[gt_faces].all(1)], process=False)
+    target, _ = trimesh.sample.sample_surface(skin, 60_000, seed=1)
+    source = np.asarray(source, np.float64)
+    tree = cKDTree(target)
+    matrix = np.asarray(initial, np.float64)
+    for _ in range(iterations):
+        distance, nearest = tree.query(_moved(source, matrix))
+        keep = distance <= np.quantile(distance, trim)
+        previous = matrix
+        matrix = trimesh.registration.procrustes(source[keep], target[nearest[keep]], reflection=False, scale=True,
+                                                 return_cost=False)
+        if np.abs(matrix - previous).max() < 1e-7:
+            break
+    return matrix
+
+
+def transform_scale(matrix: np.ndarray) -> float:
+    """The uniform scale factor of a (4, 4) similarity transform."""
+    return float(np.cbrt(np.linalg.det(matrix[:3, :3])))
+
+
+def _face_samples(verts: np.ndarray, pred_face_faces: np.ndarray) -> np.ndarray:
+    """(5000, 3) area-uniform samples of the predicted face surface (fixed seed)."""
+    return trimesh.sample.sample_surface(trimesh.Trimesh(verts, pred_face_faces, process=False), 5000, seed=2)[0]
+
+
+def _moved(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
 def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                 gt_face_vertices: np.ndarray) -> np.ndarray:
     """``verts`` moved by the rigid ICP transform that aligns the predicted face surface to the
     GT face surface (point-to-point on dense samples)."""
-    source, _ = trimesh.sample.sample_surface(trimesh.Trimesh(verts, pred_face_faces, process=False), 5000, seed=2)
-    matrix = _icp_to_face(source, gt_verts, gt_faces, gt_face_vertices)
-    return verts @ matrix[:3, :3].T + matrix[:3, 3]
+    matrix = _icp_to_face(_face_samples(verts, pred_face_faces), gt_verts, gt_faces, gt_face_vertices)
+    return _moved(verts, matrix)
 
 
 def align_face_points(face_points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
@@ -337,9 +390,14 @@ def align_face_points(face_points: np.ndarray, gt_verts: np.ndarray, gt_faces: n
     a fixed random subset) to the GT face surface: :func:`align_face` with the points as its
     source, also started from the centroids' offset (a point avatar carries its tracking's depth
     error, centimetres, beyond what 40 ICP steps from the identity undo)."""
+    return _icp_to_face(_face_subset(face_points), gt_verts, gt_faces, gt_face_vertices, centre=True)
+
+
+def _face_subset(face_points: np.ndarray) -> np.ndarray:
+    """At most 5000 of a point set's face points, a fixed random subset."""
     if len(face_points) > 5000:
         face_points = face_points[np.random.default_rng(2).choice(len(face_points), 5000, replace=False)]
-    return _icp_to_face(face_points, gt_verts, gt_faces, gt_face_vertices, centre=True)
+    return face_points
 
 
 def gt_point_labels(points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
@@ -518,23 +576,41 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
 
 
 def _mesh_distances(prediction: PredictedGeometry, verts: np.ndarray, gv: np.ndarray, gf: np.ndarray,
-                    gt_labels: np.ndarray, labels_face: int, outer: np.ndarray, samples: int,
+                    gt_labels: np.ndarray, labels_face: int, outer: np.ndarray, skin: np.ndarray, samples: int,
                     face_sel: np.ndarray, head_sel: np.ndarray) -> tuple[dict, np.ndarray]:
     """A mesh prediction's distance figures (mm) and normal consistency on one frame, and its
-    aligned vertices."""
+    aligned vertices. ``outer``: the GT's outer faces; ``skin``: its head vertices without the hair."""
     faces = prediction.faces
     cam_full = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=head_sel)
     cam_face = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=face_sel)
-    aligned = align_face(verts, faces[face_sel], gv, gf, gt_labels == labels_face)
+    source = _face_samples(verts, faces[face_sel])
+    rigid = _icp_to_face(source, gv, gf, gt_labels == labels_face)
+    aligned = _moved(verts, rigid)
     full = one_sided_hausdorff(aligned, faces, gv, gf, samples=samples, region_mask=head_sel)
     face = one_sided_hausdorff(aligned, faces, gv, gf, samples=samples, region_mask=face_sel)
+    similar = similarity_to_face(source, gv, gf, skin, rigid)
+    scaled = _moved(verts, similar)
+    full_s = one_sided_hausdorff(scaled, faces, gv, gf, samples=samples, region_mask=head_sel)
+    face_s = one_sided_hausdorff(scaled, faces, gv, gf, samples=samples, region_mask=face_sel)
     full_outer = one_sided_hausdorff(aligned, faces, gv, gf[outer], samples=samples, region_mask=head_sel)
-    pm = trimesh.Trimesh(aligned, faces[head_sel], process=False)
-    pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
     gm = trimesh.Trimesh(gv, gf, process=False)
-    closest, _, gfid = trimesh.proximity.closest_point(gm, pts)
-    nc = normal_consistency(pts, pm.face_normals[fid], closest, gm.face_normals[gfid])
-    return _distance_row(full, face, cam_full, cam_face, full_outer, nc), aligned
+    nc, nc_s = (_surface_consistency(trimesh.Trimesh(v, faces[head_sel], process=False), gm) for v in (aligned, scaled))
+    return (_distance_row(full, face, cam_full, cam_face, full_outer, nc) | _scaled_row(full_s, face_s, similar, nc_s),
+            aligned)
+
+
+def _surface_consistency(pm: trimesh.Trimesh, gm: trimesh.Trimesh) -> float:
+    """Normal consistency of 4000 area samples of the prediction's head ``pm`` (fixed seed) and the
+    GT surface points closest to them."""
+    pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
+    return _points_consistency(pts, pm.face_normals[fid], gm)
+
+
+def _points_consistency(points: np.ndarray, normals: np.ndarray, gm: trimesh.Trimesh) -> float:
+    """Normal consistency of ``points`` (P, 3) with ``normals`` and the GT surface points closest
+    to them, with the GT face normals there."""
+    closest, _, gfid = trimesh.proximity.closest_point(gm, np.asarray(points, np.float64))
+    return normal_consistency(points, normals, closest, gm.face_normals[gfid])
 
 
 def _stats(d: np.ndarray) -> dict:
@@ -548,9 +624,14 @@ def _distance_row(full: dict, face: dict, cam_full: dict, cam_face: dict, full_o
             "normal_consistency": nc, "hausdorff_full_outer_mm": 1000 * full_outer["mean"]}
 
 
+def _scaled_row(full: dict, face: dict, similar: np.ndarray, nc: float) -> dict:
+    return {"hausdorff_full_scaled_mm": 1000 * full["mean"], "hausdorff_face_scaled_mm": 1000 * face["mean"],
+            "alignment_scale": transform_scale(similar), "normal_consistency_scaled": nc}
+
+
 def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray, gv: np.ndarray, gf: np.ndarray,
                      gt_labels: np.ndarray, head_labels: np.ndarray, labels_face: int, outer: np.ndarray,
-                     frame: int, regions: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
+                     skin: np.ndarray, frame: int, regions: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
     """A point set's distance figures (mm) and normal consistency on one frame (the definitions
     of the module docstring), and its aligned points and normals. ``regions``: the point set's
     own (face, head) masks (P,), else the GT labels decide."""
@@ -565,18 +646,23 @@ def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray
     if not face.any():
         raise HeadforgeError(f"frame {frame}: none of the prediction's scored points is a face point"
                              + (" (nearest the ground-truth face)" if regions is None else " (its face_points)"))
-    matrix = align_face_points(scored[face], gv, gf, gt_labels == labels_face)
+    face_source = _face_subset(scored[face])
+    matrix = align_face_points(face_source, gv, gf, gt_labels == labels_face)
     R, t = matrix[:3, :3], matrix[:3, 3]
     aligned, aligned_n = points @ R.T + t, normals @ R.T
     head_pts = aligned[subset[head]]
     d_aligned = points_to_mesh(head_pts, gv, gf)
+    similar = similarity_to_face(face_source, gv, gf, skin, matrix)
+    scaled = _moved(points, similar)
+    d_scaled = points_to_mesh(scaled[subset[head]], gv, gf)
     d_outer = points_to_mesh(head_pts, gv, gf[outer])
     nc_ids = subset[head][:4000]  # the subset is a random permutation: its first head points are a random draw
     gm = trimesh.Trimesh(gv, gf, process=False)
-    closest, _, gfid = trimesh.proximity.closest_point(gm, aligned[nc_ids].astype(np.float64))
-    nc = normal_consistency(aligned[nc_ids], aligned_n[nc_ids], closest, gm.face_normals[gfid])
+    nc = _points_consistency(aligned[nc_ids], aligned_n[nc_ids], gm)
+    nc_s = _points_consistency(scaled[nc_ids], normals[nc_ids] @ similar[:3, :3].T, gm)  # |cos|: the scale cancels
     row = _distance_row(_stats(d_aligned), _stats(d_aligned[face[head]]), _stats(distance[head]),
                         _stats(distance[face]), _stats(d_outer), nc)
+    row |= _scaled_row(_stats(d_scaled), _stats(d_scaled[face[head]]), similar, nc_s)
     return row | {"head_points": int(head.sum()), "face_points": int(face.sum())}, aligned, aligned_n
 
 
@@ -603,6 +689,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         head_sel = _faces_in(prediction.faces, prediction.head_vertices)
     # a rest-like first frame decides which GT faces are outer (the hair rides on the head bone)
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
+    skin = np.isin(gt["labels"], head_labels) & (gt["labels"] != info["labels"]["hair"])
     per_frame, error_maps, views = [], [], None
     for row, f, i in zip(rows, frames, pred_rows):
         verts = prediction.vertices[i]
@@ -619,13 +706,14 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
         if prediction.is_points:
             regions = None if prediction.face_vertices is None else (prediction.face_vertices, prediction.head_vertices)
             scores, aligned, aligned_n = _point_distances(verts, prediction.normals[i], subset, gv, gf, gt["labels"],
-                                                          head_labels, labels_face, outer, int(f), regions)
+                                                          head_labels, labels_face, outer, skin, int(f),
+                                                          regions)
             if views is None:
                 views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
                                         pred_radius=prediction.radius[i])
         else:
-            scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, samples,
-                                              face_sel, head_sel)
+            scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, skin,
+                                              samples, face_sel, head_sel)
             if views is None:
                 views = turntable_views(gv, gf, aligned, prediction.faces[head_sel], K, res)
         per_frame.append({"frame": int(f), "normal_error_face_deg": nae_face, "normal_error_head_deg": nae_head,
