@@ -341,7 +341,7 @@ def similarity_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.nd
     ``1 - trim`` of the pairs dropped, Umeyama's least squares on the rest. The target is the
     whole skin, not the GT face region, because the prediction's face region never matches the
     GT's: onto the face alone, a free scale shrinks the source into it (0.85 on a tracked head
-    that is 0.97 here). Exact on a point set sampled on the GT (scale 1.000 ± 0.001); stops
+    that is 0.97 here). On a point set sampled on the GT it finds 1.000 ± 0.002; stops
     when an iteration moves the transform by less than 1e-7 (point-to-point ICP creeps along the
     scale: ~100 iterations)."""
     from scipy.spatial import cKDTree
