@@ -384,15 +384,6 @@ def align_face(verts: np.ndarray, pred_face_faces: np.ndarray, gt_verts: np.ndar
     return _moved(verts, matrix)
 
 
-def align_face_points(face_points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
-                      gt_face_vertices: np.ndarray) -> np.ndarray:
-    """(4, 4) the rigid ICP transform that aligns a point set's face points (at most 5000 of them,
-    a fixed random subset) to the GT face surface: :func:`align_face` with the points as its
-    source, also started from the centroids' offset (a point avatar carries its tracking's depth
-    error, centimetres, beyond what 40 ICP steps from the identity undo)."""
-    return _icp_to_face(_face_subset(face_points), gt_verts, gt_faces, gt_face_vertices, centre=True)
-
-
 def _face_subset(face_points: np.ndarray) -> np.ndarray:
     """At most 5000 of a point set's face points, a fixed random subset."""
     if len(face_points) > 5000:
@@ -647,7 +638,9 @@ def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray
         raise HeadforgeError(f"frame {frame}: none of the prediction's scored points is a face point"
                              + (" (nearest the ground-truth face)" if regions is None else " (its face_points)"))
     face_source = _face_subset(scored[face])
-    matrix = align_face_points(face_source, gv, gf, gt_labels == labels_face)
+    # the rigid ICP of align_face with the points as its source, also started from the centroids'
+    # offset (a point avatar carries its tracking's depth error, centimetres, beyond 40 steps)
+    matrix = _icp_to_face(face_source, gv, gf, gt_labels == labels_face, centre=True)
     R, t = matrix[:3, :3], matrix[:3, 3]
     aligned, aligned_n = points @ R.T + t, normals @ R.T
     head_pts = aligned[subset[head]]
