@@ -185,6 +185,15 @@ def test_distribution_metrics_brute_force():
         dist = [cd(x, y) if j != i else np.inf for j, y in enumerate(both)]
         correct += labels[int(np.argmin(dist))] == labels[i]
     assert out["1nna_cd"] == pytest.approx(correct / len(both))
+    # the symmetric matrix computes each pair once and equals the full one
+    assert np.allclose(distribution.pairwise_chamfer(gen), distribution.pairwise_chamfer(gen, gen))
+    # COV over a subset of the references (HeadCraft's neutral scans) from the shared matrices
+    cols = np.array([True, False, True, True])
+    sub = distribution.mmd_cov_1nna_from(M, distribution.pairwise_chamfer(gen), distribution.pairwise_chamfer(ref), cols)
+    assert sub["cov_cd"] == pytest.approx(len(set(M[:, cols].argmin(1))) / cols.sum())
+    assert sub["mmd_cd"] == pytest.approx(out["mmd_cd"]) and sub["1nna_cd"] == pytest.approx(out["1nna_cd"])
+    with pytest.raises(HeadforgeError, match="mismatched"):
+        distribution.mmd_cov_1nna_from(M.T, distribution.pairwise_chamfer(gen), distribution.pairwise_chamfer(ref))
 
 
 def test_jsd_hand_cases():
