@@ -96,10 +96,9 @@ def scalp_distances(maps: np.ndarray, train: np.ndarray, scalp: np.ndarray) -> t
     return d.argmin(1), d.min(1)
 
 
-def metrics(gen: np.ndarray, ref: np.ndarray, ref_neutral: np.ndarray, scale: float, rr: np.ndarray | None = None) -> dict:
+def metrics(gen: np.ndarray, ref: np.ndarray, ref_neutral: np.ndarray, scale: float, rr: np.ndarray) -> dict:
     """The table's metrics of one generated set against the held-out set (clouds centred, metres).
     ``rr``: the held-out set's own Chamfer matrix, computed once for every model and seed."""
-    rr = dist.pairwise_chamfer(ref) if rr is None else rr
     m = dist.mmd_cov_1nna_from(dist.pairwise_chamfer(gen, ref), dist.pairwise_chamfer(gen), rr,
                                cov_columns=ref_neutral if ref_neutral.any() else None)
     return {"mmd": 1e6 * m["mmd_cd"], "cov": 100 * m["cov_cd"], "one_nna": 100 * m["1nna_cd"],
