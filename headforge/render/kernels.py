@@ -235,8 +235,10 @@ def rasterize_reference(xyz: torch.Tensor, faces: torch.Tensor, height: int, wid
 
 
 @numba.njit(parallel=True, cache=True)
-def _splat(xyz, radius, height, width, near, idx_out, depth_out):
-    """K nearest (in depth) points whose disc covers each pixel centre, one image."""
+def _splat(xyz, radius, squash, height, width, near, idx_out, depth_out):
+    """K nearest (in depth) points whose footprint covers each pixel centre, one image: the disc
+    (px - x)^2 + (py - y)^2 < r^2, narrowed to an ellipse by ``squash`` (N, 3) = (ux, uy, s):
+    (px - x)^2 + (py - y)^2 + s ((px - x) ux + (py - y) uy)^2 < r^2 (s = 0: the disc)."""
     N = xyz.shape[0]
     K = idx_out.shape[2]
     ymin = np.empty(N, np.int64)
@@ -255,12 +257,16 @@ def _splat(xyz, radius, height, width, near, idx_out, depth_out):
         for k in range(offsets[band], offsets[band + 1]):
             i = items[k]
             x, y, z, r = xyz[i, 0], xyz[i, 1], xyz[i, 2], radius[i]
+            ux, uy, s = squash[i, 0], squash[i, 1], squash[i, 2]
             r2 = r * r
             xs = max(0, int(np.ceil(x - r)))
             xe = min(width - 1, int(np.floor(x + r)))
             for py in range(max(r0, ymin[i]), min(r1, ymax[i]) + 1):
                 for px in range(xs, xe + 1):
                     d2 = (px - x) * (px - x) + (py - y) * (py - y)
+                    if s != 0.0:
+                        e = (px - x) * ux + (py - y) * uy
+                        d2 = d2 + s * (e * e)
                     if d2 >= r2 or z >= depth_out[py, px, K - 1]:
                         continue
                     j = K - 1  # insertion into the sorted list, nearest first
@@ -272,11 +278,15 @@ def _splat(xyz, radius, height, width, near, idx_out, depth_out):
                     idx_out[py, px, j] = i
 
 
-def splat_numba(xyz: np.ndarray, radius: np.ndarray, height: int, width: int, K: int, near: float = 1e-3):
+def splat_numba(xyz: np.ndarray, radius: np.ndarray, height: int, width: int, K: int, near: float = 1e-3,
+                squash: np.ndarray | None = None):
     """Per pixel, the K nearest points (front to back) whose disc of ``radius`` pixels covers it.
 
     Args:
-        xyz: (B, N, 3) screen-space points; radius: (B, N) pixels.
+        xyz: (B, N, 3) screen-space points; radius: (B, N) pixels; squash: None (discs) or
+            (B, N, 3) (ux, uy, s) per point: the footprint is the ellipse
+            d^2 + s (d . u)^2 < r^2 around the point (d its pixel offset), its axis along the unit
+            image direction u shortened by 1 / sqrt(1 + s) (an oriented disc seen at an angle).
     Returns:
         idx (B, H, W, K) int64 (-1 = empty), depth (B, H, W, K) (inf = empty).
     """
@@ -285,13 +295,14 @@ def splat_numba(xyz: np.ndarray, radius: np.ndarray, height: int, width: int, K:
     depth = np.full((B, height, width, K), np.inf)
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     radius = np.ascontiguousarray(radius, dtype=np.float64)
+    squash = np.zeros(xyz.shape, np.float64) if squash is None else np.ascontiguousarray(squash, dtype=np.float64)
     for b in range(B):
-        _splat(xyz[b], radius[b], height, width, near, idx[b], depth[b])
+        _splat(xyz[b], radius[b], squash[b], height, width, near, idx[b], depth[b])
     return idx, depth
 
 
 def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int, K: int, near: float = 1e-3,
-                chunk_pairs: int = 1 << 20):
+                chunk_pairs: int = 1 << 20, squash: torch.Tensor | None = None):
     """The numba kernel's K-nearest splatting as vectorised PyTorch on ``xyz``'s device (the CUDA path).
 
     Every drawable point (z > near and finite, finite x and y, radius > 0) enumerates the pixel
@@ -307,7 +318,8 @@ def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int
 
     Args:
         xyz: (B, N, 3) screen-space points (pixel x, pixel y, depth); radius: (B, N) pixels
-            (anything broadcastable to it), on any device (moved to xyz's).
+            (anything broadcastable to it), on any device (moved to xyz's); squash: None or
+            (B, N, 3) elliptical footprints, as :func:`splat_numba`'s.
     Returns:
         idx (B, H, W, K) int64 point ids front to back (-1 = empty), depth (B, H, W, K) float64
         (inf = empty), on xyz's device.
@@ -338,6 +350,9 @@ def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int
     # per drawable point, gathered once per pair: box origin and width, image offset; x, y, r², z
     ints = torch.stack([xs[todo], ys[todo], box_w, torch.div(todo, N, rounding_mode="floor") * HW], -1)
     floats = torch.stack([x[todo], y[todo], r[todo] * r[todo], z[todo]], -1)  # r * r: the kernel's r2
+    if squash is not None:
+        sq = squash.detach().to(dev, torch.float64).reshape(B * N, 3)[todo]
+        floats = torch.cat([floats, sq], -1)
     # (pixel, depth, point id) order as one int64 key: pixel * M + the point's rank in (depth, id)
     M = len(todo)
     one_key = (B * HW + 1) * M < SPLAT_KEY_LIMIT
@@ -364,8 +379,13 @@ def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int
         dx = px.double().sub_(pf[:, 0])
         dy = py.double().sub_(pf[:, 1])
         del px, py
+        if squash is not None:  # e = (px - x) ux + (py - y) uy, before dx, dy are squared in place
+            e = dx * pf[:, 4] + dy * pf[:, 5]
         d2 = dx.mul_(dx).add_(dy.mul_(dy))  # (px - x)² + (py - y)², rounded as the kernel does
         del dy
+        if squash is not None:
+            d2 = torch.where(pf[:, 6] != 0, d2 + pf[:, 6] * (e * e), d2)
+            del e
         hit = d2 < pf[:, 2]  # the kernel's two tests: inside the disc, nearer than the K-th
         del d2
         if lo:  # (nothing is held before the first chunk)
@@ -405,8 +425,10 @@ def splat_torch(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int
     return shaped()
 
 
-def splat_reference(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int, K: int, near: float = 1e-3):
-    """Pure-PyTorch K-nearest splatting, every pixel against every point (small inputs only)."""
+def splat_reference(xyz: torch.Tensor, radius: torch.Tensor, height: int, width: int, K: int, near: float = 1e-3,
+                    squash: torch.Tensor | None = None):
+    """Pure-PyTorch K-nearest splatting, every pixel against every point (small inputs only);
+    ``squash`` as :func:`splat_numba`'s."""
     B = xyz.shape[0]
     ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
     p = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
@@ -414,7 +436,11 @@ def splat_reference(xyz: torch.Tensor, radius: torch.Tensor, height: int, width:
     depth_out = torch.full((B, height * width, K), float("inf"), dtype=torch.float64)
     for b in range(B):
         pts = xyz[b].double()
-        d2 = ((p[:, None, :] - pts[None, :, :2]) ** 2).sum(-1)
+        d = p[:, None, :] - pts[None, :, :2]
+        d2 = (d ** 2).sum(-1)
+        if squash is not None:
+            sq = squash[b].double()
+            d2 = d2 + sq[None, :, 2] * ((d * sq[None, :, :2]).sum(-1)) ** 2
         ok = (d2 < radius[b].double()[None] ** 2) & (pts[None, :, 2] > near)
         depth = torch.where(ok, pts[None, :, 2].expand_as(d2), torch.full_like(d2, float("inf")))
         k = min(K, depth.shape[1])
