@@ -43,11 +43,12 @@ def _sample_gt_head(gt: dict, info: dict, n: int, seed: int = 0) -> tuple[np.nda
             float(np.sqrt(area.sum() / n)), faces)
 
 
-def _write_points(folder, frames, points, normals, radius) -> None:
+def _write_points(folder, frames, points, normals, radius, surfel_min_cos: float = 0.0) -> None:
     folder.mkdir(parents=True, exist_ok=True)
+    extra = {"surfel_min_cos": np.array([surfel_min_cos], np.float32)} if surfel_min_cos else {}
     save_file({"frames": frames.astype(np.int64), "points": np.ascontiguousarray(points, np.float32),
-               "normals": np.ascontiguousarray(normals, np.float32), "radius": np.ascontiguousarray(radius, np.float32)},
-              str(folder / "geometry.safetensors"))
+               "normals": np.ascontiguousarray(normals, np.float32), "radius": np.ascontiguousarray(radius, np.float32)}
+              | extra, str(folder / "geometry.safetensors"))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +75,9 @@ def point_sets(synth_bench, tmp_path_factory):
     save_file({"frames": frames.astype(np.int64), "vertices": gt["vertices"].astype(np.float32),
                "faces": faces.astype(np.int64), "face_vertices": gt["labels"] == info["labels"]["face"],
                "head_vertices": np.isin(gt["labels"], info["head_labels"])}, str(root / "mesh" / "geometry.safetensors"))
-    return {"subject": subject, "every": len(rows), "spacing": spacing, **{k: root / k for k in
+    outer = np.zeros(len(gt["vertices"][0]), bool)
+    outer[faces.ravel()] = True  # the vertices of the sampled (outer head) faces
+    return {"subject": subject, "every": len(rows), "spacing": spacing, "outer": outer, **{k: root / k for k in
                                                                            ("clean", "flipped", "noisy", "mesh")}}
 
 
@@ -112,6 +115,32 @@ def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets)
     noisy = evaluate_geometry(point_sets["noisy"], subject, every=every, samples=2000)["mean"]
     assert noisy["normal_consistency"] < m["normal_consistency"] - 0.05
     assert noisy["normal_error_head_deg"] > m["normal_error_head_deg"] + 5
+
+
+def test_a_point_set_drawn_as_surfels_is_scored_as_drawn(point_sets, tmp_path):
+    """A point set exported as surfels (``surfel_min_cos``) has its normal maps splatted as
+    surfels: with large points its outline stays near the GT head's where discs spill past it."""
+    from safetensors.numpy import load_file
+
+    from headforge.metrics.benchmark import (load_prediction, load_subject_gt, prediction_normals, render_normals,
+                                             split_rows)
+
+    subject = point_sets["subject"]
+    arrays = load_file(str(point_sets["clean"] / "geometry.safetensors"))
+    big = 3 * arrays["radius"]
+    _write_points(tmp_path / "discs", arrays["frames"], arrays["points"], arrays["normals"], big)
+    _write_points(tmp_path / "surfels", arrays["frames"], arrays["points"], arrays["normals"], big, surfel_min_cos=0.1)
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", point_sets["every"])
+    frames = gt["frames"][rows]
+    K, R = np.asarray(info["intrinsics"]), int(info["resolution"])
+    discs, surfels = (load_prediction(tmp_path / name, frames) for name in ("discs", "surfels"))
+    assert discs.surfel_min_cos == 0 and surfels.surfel_min_cos == pytest.approx(0.1)
+    head = np.isin(gt["labels"], info["head_labels"]) & point_sets["outer"]
+    truth = (np.linalg.norm(render_normals(gt["vertices"][rows[0]], gt["faces"][head[gt["faces"]].all(1)], K, R), axis=-1) > 0.5).sum()
+    covered = [(np.linalg.norm(prediction_normals(p, 0, K, R), axis=-1) > 0.5).sum() for p in (discs, surfels)]
+    assert covered[0] > 1.05 * truth  # discs spill a radius past the outline
+    assert abs(covered[1] - truth) < 0.5 * (covered[0] - truth)
 
 
 def test_a_point_set_with_its_own_regions_is_aligned_on_them(point_sets, tmp_path):
@@ -173,9 +202,9 @@ def test_point_and_mesh_predictions_pair_either_way(point_sets, open_head_data, 
 class _PointAvatar:
     """What export_geometry reads of an avatar: per-frame parameters and ``geometry``."""
 
-    def __init__(self, T: int, P: int, radius_shape: str = "per point"):
+    def __init__(self, T: int, P: int, radius_shape: str = "per point", surfel_min_cos: float = 0.0):
         self.frames = {"translation": torch.zeros(T, 3)}
-        self.P, self.radius_shape = P, radius_shape
+        self.P, self.radius_shape, self.surfel_min_cos = P, radius_shape, surfel_min_cos
 
     def frame_params(self, rows):
         return {"rows": rows}
@@ -192,11 +221,11 @@ class _PointAvatar:
             else torch.full((self.P,), 2e-3)
         # strided views, as a model's outputs may be: the export must still write them correctly
         return Geometry(pts.transpose(0, 1).contiguous().transpose(0, 1), normals=normals,
-                        radius=radius)
+                        radius=radius, surfel_min_cos=self.surfel_min_cos)
 
 
-@pytest.mark.parametrize("radius_shape", ["per point", "shared (P,)"])
-def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, radius_shape):
+@pytest.mark.parametrize("radius_shape, surfel_min_cos", [("per point", 0.0), ("shared (P,)", 0.25)])
+def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, radius_shape, surfel_min_cos):
     from safetensors.numpy import load_file
 
     from headforge.avatars.engine import export_geometry
@@ -204,7 +233,8 @@ def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, 
 
     subject = point_sets["subject"]
     gt_frames = load_file(str(subject / "gt" / "geometry.safetensors"))["frames"]
-    avatar = _PointAvatar(T=int(gt_frames.max()), P=50, radius_shape=radius_shape)  # the last GT frame is beyond T
+    avatar = _PointAvatar(T=int(gt_frames.max()), P=50, radius_shape=radius_shape,  # the last GT frame is beyond T
+                          surfel_min_cos=surfel_min_cos)
     export_geometry(avatar, subject, tmp_path / "geometry.safetensors")
     assert not list(tmp_path.glob("*.tmp.*"))
     loaded = exported_geometry(tmp_path)
@@ -215,6 +245,7 @@ def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, 
     assert np.allclose(loaded.normals, want.normals.numpy(), atol=1e-6)
     assert loaded.radius.shape == (len(kept), 50)
     assert np.allclose(loaded.radius, want.radius.expand(len(kept), 50).numpy())
+    assert loaded.surfel_min_cos == pytest.approx(surfel_min_cos)
 
 
 def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_sets, tmp_path):
@@ -241,6 +272,8 @@ def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_set
     ("float frames", "integer frame indices"),
     ("face_points (P + 1,)", "point masks"),
     ("face_points without head_points", "lacks 'head_points'"),
+    ("surfel_min_cos 0", "surfel_min_cos must be one value in (0, 1]"),
+    ("surfel_min_cos (2,)", "surfel_min_cos must be one value in (0, 1]"),
 ])
 def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
     from headforge.metrics.benchmark import load_prediction
@@ -273,6 +306,10 @@ def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
         arrays |= {"face_points": np.ones(P + 1, bool), "head_points": np.ones(P, bool)}
     elif damage == "face_points without head_points":
         arrays["face_points"] = np.ones(P, bool)
+    elif damage == "surfel_min_cos 0":
+        arrays["surfel_min_cos"] = np.zeros(1, np.float32)
+    elif damage == "surfel_min_cos (2,)":
+        arrays["surfel_min_cos"] = np.full(2, 0.5, np.float32)
     save_file(arrays, str(tmp_path / "geometry.safetensors"))
     with pytest.raises(HeadforgeError) as err:
         load_prediction(tmp_path, np.arange(T))

@@ -459,3 +459,34 @@ def test_mouth_seed_adds_points_inside_the_canonical_inner_lips(rendered):
     assert ((x[:, :2] >= lo[:2] - 1e-6) & (x[:, :2] <= hi[:2] + 1e-6)).all()  # within the lips' opening
     assert (x[:, 2] <= hi[2] + 1e-6).all() and (x[:, 2] >= lo[2] - MOUTH_DEPTH - 1e-6).all()  # behind it
     assert x[:, 2].min() < ring[:, 2].mean() - 0.5 * MOUTH_DEPTH  # some reach into the cavity
+
+
+def test_surfels_draw_the_points_as_their_tangent_discs_and_the_geometry_says_so(rendered):
+    """surfel_min_cos > 0 (deviation 17, off in both presets): the avatar splats its points as
+    surfels of their deformed normals (a narrower footprint than discs, the same points), its
+    exported geometry carries the setting, and the RGB energy reaches the SDF through the
+    footprints; a value outside [0, 1] is refused."""
+    from headforge.avatars import registry
+    from headforge.avatars.run import RunAssets
+    from headforge.render.camera import Cameras
+
+    method = registry.get("pointavatar")
+    assets = RunAssets.from_dataset(rendered)
+    torch.manual_seed(0)
+    discs = method.build(assets, tiny_config())
+    torch.manual_seed(0)
+    surfels = method.build(assets, tiny_config(surfel_min_cos=0.2))
+    params = discs.frame_params(torch.arange(2))
+    from headforge.avatars.frames import FrameData
+    from headforge.metrics.protocol import TrackedHead
+
+    train = FrameData(rendered, "train", 64, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    cams = Cameras.at_origin(train.K[None], 2, 64)
+    a, b = (m.render(params, cams) for m in (discs, surfels))
+    assert torch.equal(a.points, b.points)
+    assert b.coverage.sum() < a.coverage.sum() and (b.coverage > 0.5).any()
+    assert discs.geometry(params).surfel_min_cos == 0 and surfels.geometry(params).surfel_min_cos == pytest.approx(0.2)
+    b.rgb.mean().backward()
+    assert surfels.points.grad is not None and surfels.points.grad.abs().sum() > 0
+    with pytest.raises(HeadforgeError, match="surfel_min_cos"):
+        method.build(assets, tiny_config(surfel_min_cos=1.5))

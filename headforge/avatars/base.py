@@ -48,7 +48,9 @@ class Geometry:
     vertices (B, V, 3); faces (F, 3) long for a mesh, None for a point set; normals (B, V, 3)
     or None; face_vertices / head_vertices (V,) bool: the face and the head without the neck
     (what the geometry metrics score), or None when the method cannot tell; radius (B, V)
-    world-space point radii (metres) for a point set (what a splat of it covers), else None.
+    world-space point radii (metres) for a point set (what a splat of it covers), else None;
+    surfel_min_cos: a point set drawn as surfels (:func:`headforge.render.points.splat`'s
+    ``min_cos``), 0 for screen-facing discs.
     """
 
     vertices: torch.Tensor
@@ -57,6 +59,7 @@ class Geometry:
     face_vertices: torch.Tensor | None = None
     head_vertices: torch.Tensor | None = None
     radius: torch.Tensor | None = None
+    surfel_min_cos: float = 0.0
 
 
 @dataclass

@@ -89,6 +89,7 @@ class PredictedGeometry:
     source: str
     normals: np.ndarray | None = None  # (N, V, 3) unit point normals of a point set
     radius: np.ndarray | None = None  # (N, V) world-space point radii (metres) of a point set
+    surfel_min_cos: float = 0.0  # > 0: the point set is drawn as surfels (render.points.splat's min_cos)
 
     @property
     def is_points(self) -> bool:
@@ -203,8 +204,14 @@ def _point_geometry(path: Path, arrays: dict[str, np.ndarray], source: str) -> P
         if g["face_points"].shape != (P,) or g["head_points"].shape != (P,):
             raise HeadforgeError(f"{path}: face_points / head_points must be ({P},) point masks")
         face, head = g["face_points"].astype(bool), g["head_points"].astype(bool)
+    min_cos = 0.0
+    if "surfel_min_cos" in arrays:
+        value = np.asarray(arrays["surfel_min_cos"], np.float64).ravel()
+        if value.shape != (1,) or not 0 < value[0] <= 1:
+            raise HeadforgeError(f"{path}: surfel_min_cos must be one value in (0, 1], got {value}")
+        min_cos = float(value[0])
     return PredictedGeometry(frames.astype(np.int64), points, None, face, head, source,
-                             normals=normals / length, radius=radius)
+                             normals=normals / length, radius=radius, surfel_min_cos=min_cos)
 
 
 SUBJECT_KEYS = ("train_frames", "intrinsics", "resolution", "labels", "head_labels", "subject")
@@ -286,11 +293,12 @@ def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resol
 
 
 def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K: np.ndarray,
-                  resolution: int, k: int = 8) -> np.ndarray:
+                  resolution: int, k: int = 8, surfel_min_cos: float = 0.0) -> np.ndarray:
     """(R, R, 3) camera-space unit normals of a camera-space point set (P, 3) with normals (P, 3)
-    and world radii (P,) metres, zero where empty: discs of ``fx * radius / depth`` pixels,
-    the ``k`` nearest in depth composited front to back, renormalised, kept where the
-    accumulated alpha exceeds 0.5 (the point-set counterpart of :func:`render_normals`)."""
+    and world radii (P,) metres, zero where empty: discs of ``fx * radius / depth`` pixels (or
+    surfels of that radius when ``surfel_min_cos`` > 0, as the avatar drew them), the ``k``
+    nearest in depth composited front to back, renormalised, kept where the accumulated alpha
+    exceeds 0.5 (the point-set counterpart of :func:`render_normals`)."""
     from headforge.render.camera import Cameras
     from headforge.render.points import splat
 
@@ -298,7 +306,8 @@ def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K
     n = torch.from_numpy(np.asarray(normals, np.float32))[None]
     r_px = float(K[0, 0]) * torch.from_numpy(np.asarray(radius, np.float32))[None] / p[..., 2].clamp(min=1e-3)
     cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
-    image = splat(cams, p, n, r_px, K=k)
+    surfels = surfel_min_cos > 0
+    image = splat(cams, p, n, r_px, K=k, normals=n if surfels else None, min_cos=surfel_min_cos if surfels else 0.3)
     out = torch.nn.functional.normalize(image.features, dim=-1)
     return torch.where(image.mask[..., None] > 0.5, out, torch.zeros(3))[0].numpy()
 
@@ -307,7 +316,8 @@ def prediction_normals(prediction: PredictedGeometry, row: int, K: np.ndarray, r
     """(R, R, 3) normal map of ``prediction``'s row ``row``: rasterized for a mesh, splatted for
     a point set; zero where it does not cover."""
     if prediction.is_points:
-        return splat_normals(prediction.vertices[row], prediction.normals[row], prediction.radius[row], K, resolution)
+        return splat_normals(prediction.vertices[row], prediction.normals[row], prediction.radius[row], K, resolution,
+                             surfel_min_cos=prediction.surfel_min_cos)
     return render_normals(prediction.vertices[row], prediction.faces, K, resolution)
 
 
@@ -405,12 +415,13 @@ def gt_point_labels(points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarr
 def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices: np.ndarray,
                     pred_faces: np.ndarray | None, K: np.ndarray, resolution: int,
                     yaws_deg: tuple[float, ...] = (0.0, 60.0, 90.0, 150.0), pred_normals: np.ndarray | None = None,
-                    pred_radius: np.ndarray | None = None) -> np.ndarray:
+                    pred_radius: np.ndarray | None = None, pred_surfel_min_cos: float = 0.0) -> np.ndarray:
     """(2R, len(yaws) R, 3) normal-map picture in [0, 1]: the GT mesh (top row) and the
     prediction (bottom row), both camera space in metres, turned by the same ``yaws_deg`` about
     the camera's vertical axis through the GT mesh's centroid. The frontal error map shows only
     what the camera saw; these views show the top and back, which a monocular clip rarely does.
-    A point-set prediction: ``pred_faces`` None, its ``pred_normals`` and ``pred_radius`` given."""
+    A point-set prediction: ``pred_faces`` None, its ``pred_normals`` and ``pred_radius`` given
+    (and ``pred_surfel_min_cos`` when it is drawn as surfels)."""
     pivot = np.asarray(gt_vertices, np.float64).mean(0)
     rows = []
     for verts, faces, normals in ((gt_vertices, gt_faces, None), (pred_vertices, pred_faces, pred_normals)):
@@ -420,7 +431,8 @@ def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices
             c, s = np.cos(yaw), np.sin(yaw)
             R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
             if faces is None:
-                n = splat_normals(centred @ R.T + pivot, normals @ R.T, pred_radius, K, resolution)
+                n = splat_normals(centred @ R.T + pivot, normals @ R.T, pred_radius, K, resolution,
+                                  surfel_min_cos=pred_surfel_min_cos)
             else:
                 n = render_normals(centred @ R.T + pivot, faces, K, resolution)
             tiles.append(np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, 0.5 * (n + 1), 0.5))
@@ -703,7 +715,8 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
                                                           regions)
             if views is None:
                 views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
-                                        pred_radius=prediction.radius[i])
+                                        pred_radius=prediction.radius[i],
+                                        pred_surfel_min_cos=prediction.surfel_min_cos)
         else:
             scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, skin,
                                               samples, face_sel, head_sel)

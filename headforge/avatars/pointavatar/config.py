@@ -28,6 +28,10 @@ class PointAvatarConfig(EngineConfig):
     upsample_every: int = 625  # iterations between doublings (the authors' 5 epochs)
     prune_every: int = 125  # iterations between prunes (one epoch)
     points_per_pixel: int = 10
+    # 0: every point a screen-facing disc (the paper's PyTorch3D points); > 0: its tangent disc (a
+    # surfel), foreshortened by |cos(normal, view ray)| clamped at this value, so the outline falls
+    # at the points rather than a radius beyond them (docs/pointavatar.md, deviation 17)
+    surfel_min_cos: float = 0.0
     # networks (supp. Fig. 3)
     canonical_width: int = 256
     canonical_layers: int = 9
@@ -123,6 +127,8 @@ class PointAvatarConfig(EngineConfig):
         self.checkpoint_every = max(1, round(self.checkpoint_every * f))
 
     def validate(self) -> None:
+        if not 0 <= self.surfel_min_cos <= 1:
+            raise HeadforgeError(f"surfel_min_cos must be in [0, 1] (0: discs), got {self.surfel_min_cos}")
         if self.init_cloud not in ("sphere", "head"):
             raise HeadforgeError(f"init_cloud must be sphere or head, got {self.init_cloud!r}")
         if self.shading not in ("learned", "none"):

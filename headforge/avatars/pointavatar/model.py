@@ -148,6 +148,15 @@ class PointAvatarModel(Avatar):
         self.jacobian_normals = bool(config.jacobian_normals)
         self.points_per_pixel = int(config.points_per_pixel)
         self.hole_filling = bool(config.hole_filling)
+        self.surfel_min_cos = float(config.surfel_min_cos)
+
+    def splat(self, cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius_px: torch.Tensor,
+              normals: torch.Tensor):
+        """Splat the points as the avatar draws them: discs, or surfels of ``normals`` (same frame
+        as ``points``) when ``surfel_min_cos`` > 0."""
+        surfels = self.surfel_min_cos > 0
+        return splat(cameras, points, features, radius_px, K=self.points_per_pixel,
+                     normals=normals if surfels else None, min_cos=self.surfel_min_cos if surfels else 0.3)
 
     def nearest_canonical_vertices(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
@@ -313,7 +322,7 @@ class PointAvatarModel(Avatar):
             features += [c.albedo.expand_as(colour), shading.clamp(0, 2) / 2]
         depth = cameras.world_to_camera(pts)[..., 2]
         radius_px = cameras.K[:, 0, 0, None] * self.radius / depth.clamp(min=1e-3)
-        img = splat(cameras, pts, torch.cat(features, -1), radius_px, K=self.points_per_pixel)
+        img = self.splat(cameras, pts, torch.cat(features, -1), radius_px, n_cam)
         f, mask = img.features, img.mask
         if hole_filling if hole_filling is not None else (self.hole_filling and not training):
             f, mask = fill_holes(f, mask)
@@ -341,7 +350,7 @@ class PointAvatarModel(Avatar):
                                     self.head.num_vertices)
         as_mask = lambda m: torch.from_numpy(m[nearest]).to(pts.device)  # noqa: E731
         return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]), face_vertices=as_mask(face),
-                        head_vertices=as_mask(head))
+                        head_vertices=as_mask(head), surfel_min_cos=self.surfel_min_cos)
 
     # ---- coarse to fine ---------------------------------------------------------------------
     def prune(self) -> int:

@@ -12,7 +12,6 @@ import torch
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.head.pose import FLIP
 from headforge.render.camera import Cameras
-from headforge.render.points import splat
 
 
 @torch.no_grad()
@@ -33,7 +32,7 @@ def canonical_sheet(avatar: PointAvatarModel, K: torch.Tensor, resolution: int) 
         radius = K[0, 0] * avatar.radius / p[:, 2].clamp(min=1e-3)
         tiles = []
         for colour in (c.albedo, 0.5 + 0.5 * n @ R.T, shading):
-            img = splat(cams, p[None], colour[None], radius[None], K=avatar.points_per_pixel)
+            img = avatar.splat(cams, p[None], colour[None], radius[None], (n @ R.T * n.new_tensor(FLIP))[None])
             tiles.append(img.features[0] + (1 - img.mask[0, ..., None]))
         rows.append(torch.cat(tiles, 1))
     return torch.cat(rows, 0).clamp(0, 1)
