@@ -29,7 +29,8 @@ import trimesh
 
 from headforge.errors import HeadforgeError
 from headforge.metrics.benchmark import (_point_distances, exported_geometry, gt_point_labels, load_subject_gt,
-                                         outer_surface_faces, prediction_rows, split_rows, splat_normals)
+                                         outer_surface_faces, prediction_rows, seen_gt_samples, split_rows,
+                                         splat_normals)
 from headforge.render.camera import project_points
 
 DISTANCE_BINS_MM = (0.0, 1.0, 3.0, 10.0, np.inf)
@@ -96,13 +97,16 @@ def main() -> None:
     names = {v: k for k, v in info["labels"].items()}
     subset = np.random.default_rng(0).permutation(pred.vertices.shape[1])[:args.samples]
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
+    skin = np.isin(gt["labels"], head_labels) & (gt["labels"] != info["labels"]["hair"])
+    gt_head_faces = np.isin(gt["labels"], head_labels)[gt["faces"]].all(1)
     pooled = {k: [] for k in ("cos", "label", "distance", "visible", "splat_cos", "facing")}
     protocol = []
     for row, f, i in zip(rows, frames, lookup):
         gv, gf = gt["vertices"][row], gt["faces"]
         regions = None if pred.face_vertices is None else (pred.face_vertices, pred.head_vertices)
+        seen = seen_gt_samples(gv, gf, gt_head_faces, K, res)
         scores, aligned, aligned_n = _point_distances(pred.vertices[i], pred.normals[i], subset, gv, gf, gt["labels"],
-                                                      head_labels, labels_face, outer, int(f), regions)
+                                                      head_labels, labels_face, outer, skin, int(f), seen, regions)
         protocol.append(scores["normal_consistency"])
         head = regions[1][subset] if regions is not None else np.ones(len(subset), bool)
         ids = subset[head][:4000]

@@ -91,7 +91,8 @@ def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets)
     result = evaluate_geometry(point_sets["clean"], subject, every=every, samples=2000)
     assert result["kind"] == "points" and result["frames"] == 1
     m = result["mean"]
-    assert m["normal_consistency"] > 0.98
+    # both ways: the seen GT's flat strand faces against the samples' smooth normals cap it below 1
+    assert m["normal_consistency"] > 0.96
     assert m["hausdorff_full_camera_mm"] < 0.01 and m["hausdorff_face_camera_mm"] < 0.01
     assert m["hausdorff_full_mm"] < 0.3 and m["hausdorff_face_mm"] < 0.3  # the ICP settles within 0.3 mm
     assert m["hausdorff_full_outer_mm"] < 0.3  # sampled on the outer surface only
@@ -115,6 +116,24 @@ def test_a_point_set_sampled_on_the_ground_truth_scores_near_perfect(point_sets)
     noisy = evaluate_geometry(point_sets["noisy"], subject, every=every, samples=2000)["mean"]
     assert noisy["normal_consistency"] < m["normal_consistency"] - 0.05
     assert noisy["normal_error_head_deg"] > m["normal_error_head_deg"] + 5
+
+
+def test_normal_consistency_charges_the_seen_head_a_prediction_leaves_out(point_sets, tmp_path):
+    """Normal consistency runs both ways: half the clean points (one side of the head dropped)
+    keep their own normals' agreement with the GT, but the seen GT surface on the dropped side
+    finds its nearest points on the other half, so the figure falls."""
+    from safetensors.numpy import load_file
+
+    from headforge.metrics.benchmark import evaluate_geometry
+
+    subject, every = point_sets["subject"], point_sets["every"]
+    arrays = load_file(str(point_sets["clean"] / "geometry.safetensors"))
+    pts = arrays["points"]
+    keep = pts[0, :, 0] > np.median(pts[0, :, 0])  # one side of the head (camera x), the same points every frame
+    _write_points(tmp_path / "half", arrays["frames"], pts[:, keep], arrays["normals"][:, keep], arrays["radius"][:, keep])
+    full = evaluate_geometry(point_sets["clean"], subject, every=every, samples=2000)["mean"]
+    half = evaluate_geometry(tmp_path / "half", subject, every=every, samples=2000)["mean"]
+    assert half["normal_consistency"] < full["normal_consistency"] - 0.05
 
 
 def test_a_point_set_drawn_as_surfels_is_scored_as_drawn(point_sets, tmp_path):
@@ -166,7 +185,7 @@ def test_a_point_set_with_its_own_regions_is_aligned_on_them(point_sets, tmp_pat
     save_file(with_regions, str(own / "geometry.safetensors"))
     m = evaluate_geometry(own, subject, every=every, samples=2000)["mean"]
     assert m["hausdorff_full_camera_mm"] > 20  # the shift itself
-    assert m["hausdorff_face_mm"] < 1.0 and m["hausdorff_full_mm"] < 1.0 and m["normal_consistency"] > 0.97
+    assert m["hausdorff_face_mm"] < 1.0 and m["hausdorff_full_mm"] < 1.0 and m["normal_consistency"] > 0.96
     assert m["face_points"] == int((label == info["labels"]["face"])[np.random.default_rng(0).permutation(
         len(label))[:2000]].sum())
     by_gt = evaluate_geometry(tmp_path / "gt_labels", subject, every=every, samples=2000)["mean"]

@@ -15,7 +15,10 @@ For every ground-truth frame of the chosen split (``gt/geometry.safetensors`` li
   monocular clip fixes the head's size only through the head model's prior), with
   ``alignment_scale`` its factor (> 1: the prediction was smaller than the GT) and
   ``normal_consistency_scaled`` the normal consistency after it;
-- normal consistency between prediction samples and the GT surface (PointAvatar);
+- normal consistency (PointAvatar): mean |cos| between nearest neighbours, both directions:
+  each prediction sample against the GT normal at its closest GT surface point, and each sample
+  of the GT head surface the frame's camera sees (:func:`seen_gt_samples`: 10,000 area samples of
+  the GT head faces in the frame's z-buffer) against its nearest prediction sample;
 - two figures beside the protocol, to read it by: ``hausdorff_full_outer_mm``, the aligned
   full-head distance to the GT's *outer* surface only (the GT meshes, like NHA's MakeHuman ones,
   keep the scalp under the hair, and the synthetic hair volume has an inner shell under the
@@ -57,8 +60,11 @@ for points as follows:
   GT's outer surface, ``*_scaled_mm`` after the similarity alignment of the same face points.
 - normal consistency: as for meshes, mean ``|cos|`` between nearest neighbours, both directions,
   of the aligned head points (at most 4000, with their normals turned by the alignment) and the
-  GT surface samples closest to them (with the GT face normals). ``|cos|`` ignores orientation:
-  a point set with every normal flipped keeps its consistency; the normal error catches it.
+  GT (its closest surface points; the seen head's samples); a mesh contributes 4000 area samples
+  of its head with their face normals. Until 2026-12-06 the second direction was missing (the GT
+  side was only the closest points to the prediction's, matched back to them), so a prediction
+  that left part of the seen head out was not charged for it. ``|cos|`` ignores orientation: a point set with every normal
+  flipped keeps its consistency; the normal error catches it.
 """
 
 from __future__ import annotations
@@ -71,10 +77,11 @@ import numpy as np
 import torch
 import trimesh
 from safetensors.numpy import load_file
+from scipy.spatial import cKDTree
 
 from headforge.errors import HeadforgeError
 from headforge.paths import make_folder
-from headforge.metrics.geometry import normal_angle_error, normal_consistency, one_sided_hausdorff, points_to_mesh
+from headforge.metrics.geometry import normal_angle_error, one_sided_hausdorff, points_to_mesh
 
 
 @dataclass
@@ -354,8 +361,6 @@ def similarity_to_face(source: np.ndarray, gt_verts: np.ndarray, gt_faces: np.nd
     that is 0.97 here). On a point set sampled on the GT it finds 1.000 ± 0.002; stops
     when an iteration moves the transform by less than 1e-7 (point-to-point ICP creeps along the
     scale: ~100 iterations)."""
-    from scipy.spatial import cKDTree
-
     skin = trimesh.Trimesh(gt_verts, gt_faces[gt_skin_vertices[gt_faces].all(1)], process=False)
     target, _ = trimesh.sample.sample_surface(skin, 60_000, seed=1)
     source = np.asarray(source, np.float64)
@@ -578,11 +583,34 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
                            "share": float(s[1] / total)} for label, s in sums.items()}
 
 
+def seen_gt_samples(gt_verts: np.ndarray, gt_faces: np.ndarray, head_faces: np.ndarray, K: np.ndarray,
+                    resolution: int, n: int = 10_000) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` area-uniform samples (fixed seed) of the GT head surface the frame's camera sees: the
+    faces among ``head_faces`` (F,) bool that cover a pixel of the GT mesh's z-buffer (the whole
+    mesh occludes, body and hair included), with their face normals; (n, 3) each."""
+    from headforge.render import mesh
+    from headforge.render.camera import Cameras
+
+    v = torch.from_numpy(np.asarray(gt_verts, np.float32))[None]
+    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    ids = mesh.rasterize(cams, v, torch.from_numpy(np.asarray(gt_faces, np.int64))).face_id.unique().numpy()
+    seen = np.zeros(len(gt_faces), bool)
+    seen[ids[ids >= 0]] = True
+    seen &= head_faces
+    if not seen.any():
+        raise HeadforgeError("the camera sees none of the ground-truth head")
+    gm = trimesh.Trimesh(gt_verts, gt_faces[seen], process=False)
+    points, fid = trimesh.sample.sample_surface(gm, n, seed=0)
+    return np.asarray(points), gm.face_normals[fid]
+
+
 def _mesh_distances(prediction: PredictedGeometry, verts: np.ndarray, gv: np.ndarray, gf: np.ndarray,
                     gt_labels: np.ndarray, labels_face: int, outer: np.ndarray, skin: np.ndarray, samples: int,
-                    face_sel: np.ndarray, head_sel: np.ndarray) -> tuple[dict, np.ndarray]:
+                    face_sel: np.ndarray, head_sel: np.ndarray,
+                    seen: tuple[np.ndarray, np.ndarray]) -> tuple[dict, np.ndarray]:
     """A mesh prediction's distance figures (mm) and normal consistency on one frame, and its
-    aligned vertices. ``outer``: the GT's outer faces; ``skin``: its head vertices without the hair."""
+    aligned vertices. ``outer``: the GT's outer faces; ``skin``: its head vertices without the
+    hair; ``seen``: :func:`seen_gt_samples` of the frame."""
     faces = prediction.faces
     cam_full = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=head_sel)
     cam_face = one_sided_hausdorff(verts, faces, gv, gf, samples=samples, region_mask=face_sel)
@@ -597,23 +625,31 @@ def _mesh_distances(prediction: PredictedGeometry, verts: np.ndarray, gv: np.nda
     face_s = one_sided_hausdorff(scaled, faces, gv, gf, samples=samples, region_mask=face_sel)
     full_outer = one_sided_hausdorff(aligned, faces, gv, gf[outer], samples=samples, region_mask=head_sel)
     gm = trimesh.Trimesh(gv, gf, process=False)
-    nc, nc_s = (_surface_consistency(trimesh.Trimesh(v, faces[head_sel], process=False), gm) for v in (aligned, scaled))
+    nc, nc_s = (_surface_consistency(trimesh.Trimesh(v, faces[head_sel], process=False), gm, seen) for v in (aligned, scaled))
     return (_distance_row(full, face, cam_full, cam_face, full_outer, nc) | _scaled_row(full_s, face_s, similar, nc_s),
             aligned)
 
 
-def _surface_consistency(pm: trimesh.Trimesh, gm: trimesh.Trimesh) -> float:
-    """Normal consistency of 4000 area samples of the prediction's head ``pm`` (fixed seed) and the
-    GT surface points closest to them."""
+def _surface_consistency(pm: trimesh.Trimesh, gm: trimesh.Trimesh, seen: tuple[np.ndarray, np.ndarray]) -> float:
+    """Normal consistency of 4000 area samples of the prediction's head ``pm`` (fixed seed, face
+    normals) with the GT ``gm`` and its seen head's samples ``seen`` (:func:`_points_consistency`)."""
     pts, fid = trimesh.sample.sample_surface(pm, 4000, seed=0)
-    return _points_consistency(pts, pm.face_normals[fid], gm)
+    return _points_consistency(pts, pm.face_normals[fid], gm, seen)
 
 
-def _points_consistency(points: np.ndarray, normals: np.ndarray, gm: trimesh.Trimesh) -> float:
-    """Normal consistency of ``points`` (P, 3) with ``normals`` and the GT surface points closest
-    to them, with the GT face normals there."""
-    closest, _, gfid = trimesh.proximity.closest_point(gm, np.asarray(points, np.float64))
-    return normal_consistency(points, normals, closest, gm.face_normals[gfid])
+def _points_consistency(points: np.ndarray, normals: np.ndarray, gm: trimesh.Trimesh,
+                        seen: tuple[np.ndarray, np.ndarray]) -> float:
+    """Normal consistency, both directions: the mean ``|cos|`` of each of ``points`` (P, 3) with
+    ``normals`` against the GT face normal at its closest GT surface point (wherever on the GT it
+    lies), and of each seen GT sample (:func:`seen_gt_samples`) against its nearest point's normal;
+    the two means averaged."""
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    _, _, gfid = trimesh.proximity.closest_point(gm, np.asarray(points, np.float64))
+    to_gt = np.abs((n * gm.face_normals[gfid]).sum(1)).mean()
+    seen_points, seen_normals = seen
+    _, nearest = cKDTree(points).query(seen_points)
+    to_prediction = np.abs((seen_normals * n[nearest]).sum(1)).mean()
+    return float(0.5 * (to_gt + to_prediction))
 
 
 def _stats(d: np.ndarray) -> dict:
@@ -634,10 +670,12 @@ def _scaled_row(full: dict, face: dict, similar: np.ndarray, nc: float) -> dict:
 
 def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray, gv: np.ndarray, gf: np.ndarray,
                      gt_labels: np.ndarray, head_labels: np.ndarray, labels_face: int, outer: np.ndarray,
-                     skin: np.ndarray, frame: int, regions: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
+                     skin: np.ndarray, frame: int, seen: tuple[np.ndarray, np.ndarray],
+                     regions: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
     """A point set's distance figures (mm) and normal consistency on one frame (the definitions
-    of the module docstring), and its aligned points and normals. ``regions``: the point set's
-    own (face, head) masks (P,), else the GT labels decide."""
+    of the module docstring), and its aligned points and normals. ``seen``: the frame's
+    :func:`seen_gt_samples`; ``regions``: the point set's own (face, head) masks (P,), else the GT
+    labels decide."""
     scored = points[subset]
     _, distance, _, label = gt_point_labels(scored, gv, gf, gt_labels)
     if regions is None:
@@ -663,8 +701,8 @@ def _point_distances(points: np.ndarray, normals: np.ndarray, subset: np.ndarray
     d_outer = points_to_mesh(head_pts, gv, gf[outer])
     nc_ids = subset[head][:4000]  # the subset is a random permutation: its first head points are a random draw
     gm = trimesh.Trimesh(gv, gf, process=False)
-    nc = _points_consistency(aligned[nc_ids], aligned_n[nc_ids], gm)
-    nc_s = _points_consistency(scaled[nc_ids], normals[nc_ids] @ similar[:3, :3].T, gm)  # |cos|: the scale cancels
+    nc = _points_consistency(aligned[nc_ids], aligned_n[nc_ids], gm, seen)
+    nc_s = _points_consistency(scaled[nc_ids], normals[nc_ids] @ similar[:3, :3].T, gm, seen)  # |cos|: the scale cancels
     row = _distance_row(_stats(d_aligned), _stats(d_aligned[face[head]]), _stats(distance[head]),
                         _stats(distance[face]), _stats(d_outer), nc)
     row |= _scaled_row(_stats(d_scaled), _stats(d_scaled[face[head]]), similar, nc_s)
@@ -695,6 +733,7 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
     # a rest-like first frame decides which GT faces are outer (the hair rides on the head bone)
     outer = outer_surface_faces(gt["vertices"][rows[0]], gt["faces"], gt["labels"], info["labels"]["hair"])
     skin = np.isin(gt["labels"], head_labels) & (gt["labels"] != info["labels"]["hair"])
+    gt_head_faces = np.isin(gt["labels"], head_labels)[gt["faces"]].all(1)
     per_frame, error_maps, views = [], [], None
     for row, f, i in zip(rows, frames, pred_rows):
         verts = prediction.vertices[i]
@@ -708,18 +747,19 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
             raise HeadforgeError(f"frame {int(f)}: the prediction covers none of the ground-truth face")
         nae_head, nae_face = _normal_errors(pred_n, gt_n, head_px, face_px)
         gv, gf = gt["vertices"][row], gt["faces"]
+        seen = seen_gt_samples(gv, gf, gt_head_faces, K, res)
         if prediction.is_points:
             regions = None if prediction.face_vertices is None else (prediction.face_vertices, prediction.head_vertices)
             scores, aligned, aligned_n = _point_distances(verts, prediction.normals[i], subset, gv, gf, gt["labels"],
                                                           head_labels, labels_face, outer, skin, int(f),
-                                                          regions)
+                                                          seen, regions)
             if views is None:
                 views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
                                         pred_radius=prediction.radius[i],
                                         pred_surfel_min_cos=prediction.surfel_min_cos)
         else:
             scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, skin,
-                                              samples, face_sel, head_sel)
+                                              samples, face_sel, head_sel, seen)
             if views is None:
                 views = turntable_views(gv, gf, aligned, prediction.faces[head_sel], K, res)
         per_frame.append({"frame": int(f), "normal_error_face_deg": nae_face, "normal_error_head_deg": nae_head,
