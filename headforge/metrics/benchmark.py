@@ -313,8 +313,8 @@ def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K
     n = torch.from_numpy(np.asarray(normals, np.float32))[None]
     r_px = float(K[0, 0]) * torch.from_numpy(np.asarray(radius, np.float32))[None] / p[..., 2].clamp(min=1e-3)
     cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
-    surfels = surfel_min_cos > 0
-    image = splat(cams, p, n, r_px, K=k, normals=n if surfels else None, min_cos=surfel_min_cos if surfels else 0.3)
+    surfels = {"normals": n, "min_cos": surfel_min_cos} if surfel_min_cos > 0 else {}
+    image = splat(cams, p, n, r_px, K=k, **surfels)
     out = torch.nn.functional.normalize(image.features, dim=-1)
     return torch.where(image.mask[..., None] > 0.5, out, torch.zeros(3))[0].numpy()
 

@@ -154,9 +154,8 @@ class PointAvatarModel(Avatar):
               normals: torch.Tensor):
         """Splat the points as the avatar draws them: discs, or surfels of ``normals`` (same frame
         as ``points``) when ``surfel_min_cos`` > 0."""
-        surfels = self.surfel_min_cos > 0
-        return splat(cameras, points, features, radius_px, K=self.points_per_pixel,
-                     normals=normals if surfels else None, min_cos=self.surfel_min_cos if surfels else 0.3)
+        surfels = {"normals": normals, "min_cos": self.surfel_min_cos} if self.surfel_min_cos > 0 else {}
+        return splat(cameras, points, features, radius_px, K=self.points_per_pixel, **surfels)
 
     def nearest_canonical_vertices(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """(N,) index of the canonical head-model vertex nearest to each of ``points`` (N, 3,
