@@ -63,8 +63,8 @@ for points as follows:
   GT (its closest surface points; the seen head's samples); a mesh contributes 4000 area samples
   of its head with their face normals. Until 2026-12-06 the second direction was missing (the GT
   side was only the closest points to the prediction's, matched back to them), so a prediction
-  that left part of the seen head out was not charged for it. ``|cos|`` ignores orientation: a point set with every normal
-  flipped keeps its consistency; the normal error catches it.
+  that left part of the seen head out was not charged for it. ``|cos|`` ignores orientation: a
+  point set with every normal flipped keeps its consistency; the normal error catches it.
 """
 
 from __future__ import annotations
@@ -293,7 +293,7 @@ def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resol
 
     v = torch.from_numpy(np.asarray(vertices, np.float32))[None]
     f = torch.from_numpy(np.asarray(faces, np.int64))
-    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    cams = Cameras.at_origin(torch.from_numpy(np.asarray(K, np.float32)), 1, resolution)
     frags = mesh.rasterize(cams, v, f)
     n = torch.nn.functional.normalize(mesh.interpolate(vertex_normals(v, f), frags, f), dim=-1)
     return torch.where(frags.mask[..., None], n, torch.zeros(3))[0].numpy()
@@ -312,7 +312,7 @@ def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K
     p = torch.from_numpy(np.asarray(points, np.float32))[None]
     n = torch.from_numpy(np.asarray(normals, np.float32))[None]
     r_px = float(K[0, 0]) * torch.from_numpy(np.asarray(radius, np.float32))[None] / p[..., 2].clamp(min=1e-3)
-    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    cams = Cameras.at_origin(torch.from_numpy(np.asarray(K, np.float32)), 1, resolution)
     surfels = {"normals": n, "min_cos": surfel_min_cos} if surfel_min_cos > 0 else {}
     image = splat(cams, p, n, r_px, K=k, **surfels)
     out = torch.nn.functional.normalize(image.features, dim=-1)
@@ -592,7 +592,7 @@ def seen_gt_samples(gt_verts: np.ndarray, gt_faces: np.ndarray, head_faces: np.n
     from headforge.render.camera import Cameras
 
     v = torch.from_numpy(np.asarray(gt_verts, np.float32))[None]
-    cams = Cameras(torch.from_numpy(K).float()[None], torch.eye(3)[None], torch.zeros(1, 3), resolution, resolution)
+    cams = Cameras.at_origin(torch.from_numpy(np.asarray(K, np.float32)), 1, resolution)
     ids = mesh.rasterize(cams, v, torch.from_numpy(np.asarray(gt_faces, np.int64))).face_id.unique().numpy()
     seen = np.zeros(len(gt_faces), bool)
     seen[ids[ids >= 0]] = True
