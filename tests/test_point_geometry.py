@@ -14,35 +14,6 @@ from safetensors.numpy import save_file
 from headforge.errors import HeadforgeError
 
 
-def _sample_gt_head(gt: dict, info: dict, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """``n`` area-uniform samples of the GT head's outer surface (neck, body, the scalp under the
-    hair and the hair's inner shell left out), the same surface points in every GT frame:
-    points (T, n, 3), their smooth normals (the interpolated vertex normals the GT normal maps
-    show), the sample spacing sqrt(area / n) in metres, and the head faces sampled."""
-    from headforge.geometry import vertex_normals
-    from headforge.metrics.benchmark import outer_surface_faces
-
-    V, F, L = gt["vertices"], gt["faces"], gt["labels"]
-    head = np.isin(L, info["head_labels"])
-    outer = outer_surface_faces(V[0], F, L, info["labels"]["hair"])
-    faces = F[head[F].all(1) & outer]
-    tri = V[0][faces].astype(np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    rng = np.random.default_rng(seed)
-    fid = rng.choice(len(faces), n, p=area / area.sum())
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    bary = np.stack([1 - u - v, u, v], 1)[None, :, :, None]
-    vn = vertex_normals(torch.from_numpy(V.astype(np.float32)), torch.from_numpy(F.astype(np.int64))).numpy()
-    points = (V[:, faces[fid]] * bary).sum(2)
-    normals = (vn[:, faces[fid]] * bary).sum(2)
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    # contiguous copies: safetensors' numpy writer would write these strided sums scrambled
-    return (np.ascontiguousarray(points, np.float32), np.ascontiguousarray(normals, np.float32),
-            float(np.sqrt(area.sum() / n)), faces)
-
-
 def _write_points(folder, frames, points, normals, radius, surfel_min_cos: float = 0.0) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     extra = {"surfel_min_cos": np.array([surfel_min_cos], np.float32)} if surfel_min_cos else {}
@@ -57,13 +28,13 @@ def point_sets(synth_bench, tmp_path_factory):
     folders: ``clean`` (40k points on the GT head, radius 1.5 x spacing), ``flipped`` (the same,
     every normal negated), ``noisy`` (normals + N(0, 0.5) noise, renormalised) and ``mesh`` (the
     GT head faces themselves, as an exported mesh)."""
-    from headforge.metrics.benchmark import load_subject_gt, split_rows
+    from headforge.metrics.benchmark import load_subject_gt, sample_gt_head, split_rows
 
     out, _, _ = synth_bench
     subject = out / "subject_00"
     gt, info = load_subject_gt(subject)
     rows, _ = split_rows(gt, info, subject, "val", 1)
-    points, normals, spacing, faces = _sample_gt_head(gt, info, 40_000)
+    points, normals, spacing, faces = sample_gt_head(gt, info, 40_000)
     radius = np.full(points.shape[:2], 1.5 * spacing, np.float32)
     root = tmp_path_factory.mktemp("point_sets")
     frames = gt["frames"]

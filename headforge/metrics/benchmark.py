@@ -583,6 +583,34 @@ def normal_error_by_label(pred: str | Path | None, subject: str | Path, split: s
                            "share": float(s[1] / total)} for label, s in sums.items()}
 
 
+def sample_gt_head(gt: dict, info: dict, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """``n`` area-uniform samples of the GT head's outer surface (neck, body, the scalp under the
+    hair and the hair's inner shell left out), the same surface points in every GT frame:
+    points (T, n, 3), their smooth normals (the interpolated vertex normals the GT normal maps
+    show), the sample spacing sqrt(area / n) in metres, and the head faces sampled."""
+    from headforge.geometry import vertex_normals
+
+    V, F, L = gt["vertices"], gt["faces"], gt["labels"]
+    head = np.isin(L, info["head_labels"])
+    outer = outer_surface_faces(V[0], F, L, info["labels"]["hair"])
+    faces = F[head[F].all(1) & outer]
+    tri = V[0][faces].astype(np.float64)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    fid = rng.choice(len(faces), n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    bary = np.stack([1 - u - v, u, v], 1)[None, :, :, None]
+    vn = vertex_normals(torch.from_numpy(V.astype(np.float32)), torch.from_numpy(F.astype(np.int64))).numpy()
+    points = (V[:, faces[fid]] * bary).sum(2)
+    normals = (vn[:, faces[fid]] * bary).sum(2)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    # contiguous copies: safetensors' numpy writer would write these strided sums scrambled
+    return (np.ascontiguousarray(points, np.float32), np.ascontiguousarray(normals, np.float32),
+            float(np.sqrt(area.sum() / n)), faces)
+
+
 def seen_gt_samples(gt_verts: np.ndarray, gt_faces: np.ndarray, head_faces: np.ndarray, K: np.ndarray,
                     resolution: int, n: int = 10_000) -> tuple[np.ndarray, np.ndarray]:
     """``n`` area-uniform samples (fixed seed) of the GT head surface the frame's camera sees: the
