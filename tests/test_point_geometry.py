@@ -14,9 +14,12 @@ from safetensors.numpy import save_file
 from headforge.errors import HeadforgeError
 
 
-def _write_points(folder, frames, points, normals, radius, surfel_min_cos: float = 0.0) -> None:
+def _write_points(folder, frames, points, normals, radius, surfel_min_cos: float = 0.0,
+                  hole_filling: bool = False) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     extra = {"surfel_min_cos": np.array([surfel_min_cos], np.float32)} if surfel_min_cos else {}
+    if hole_filling:
+        extra["hole_filling"] = np.array([1], np.uint8)
     save_file({"frames": frames.astype(np.int64), "points": np.ascontiguousarray(points, np.float32),
                "normals": np.ascontiguousarray(normals, np.float32), "radius": np.ascontiguousarray(radius, np.float32)}
               | extra, str(folder / "geometry.safetensors"))
@@ -133,6 +136,39 @@ def test_a_point_set_drawn_as_surfels_is_scored_as_drawn(point_sets, tmp_path):
     assert abs(covered[1] - truth) < 0.5 * (covered[0] - truth)
 
 
+def test_a_point_set_whose_renders_fill_holes_is_scored_with_them_filled(point_sets, tmp_path):
+    """A sparse point set exported with ``hole_filling`` has the holes between its splats closed
+    in its normal maps, as the avatar's renders close them: more of the GT head covered, within
+    the GT outline's closure, and the added pixels' normals as good as the splatted ones."""
+    from safetensors.numpy import load_file
+
+    from headforge.metrics.benchmark import load_prediction, load_subject_gt, prediction_normals, split_rows
+
+    subject = point_sets["subject"]
+    arrays = load_file(str(point_sets["clean"] / "geometry.safetensors"))
+    keep = np.random.default_rng(3).random(arrays["points"].shape[1]) < 0.2  # a fifth: holes open between the discs
+    sparse = [arrays[k][:, keep] for k in ("points", "normals", "radius")]
+    _write_points(tmp_path / "open", arrays["frames"], *sparse)
+    _write_points(tmp_path / "filled", arrays["frames"], *sparse, hole_filling=True)
+    gt, info = load_subject_gt(subject)
+    rows, _ = split_rows(gt, info, subject, "val", point_sets["every"])
+    K, R = np.asarray(info["intrinsics"]), int(info["resolution"])
+    plain, filled = (load_prediction(tmp_path / name, gt["frames"][rows]) for name in ("open", "filled"))
+    assert not plain.hole_filling and filled.hole_filling
+    n_open, n_filled = (prediction_normals(p, 0, K, R) for p in (plain, filled))
+    was, now = (np.linalg.norm(n, axis=-1) > 0.5 for n in (n_open, n_filled))
+    added = now & ~was
+    assert (was <= now).all() and np.allclose(n_filled[was], n_open[was], atol=1e-6)
+    assert added.sum() > 0.01 * was.sum()  # the holes were there, and are filled
+    assert np.allclose(np.linalg.norm(n_filled[added], axis=-1), 1, atol=1e-5)
+    # an added pixel's normal is its neighbours': within a few degrees of the covered pixels next to it
+    ys, xs = np.nonzero(added)
+    near = np.stack([n_open[np.clip(ys + dy, 0, R - 1), np.clip(xs + dx, 0, R - 1)]
+                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 1)
+    cos = np.einsum("pkc,pc->pk", near, n_filled[added])
+    assert np.median(cos.max(1)) > 0.99
+
+
 def test_a_point_set_with_its_own_regions_is_aligned_on_them(point_sets, tmp_path):
     """A point set placed 6 cm too deep (a point avatar inherits its tracking's depth error) that
     carries face_points / head_points is aligned by its own face points, back to ~the GT surface;
@@ -192,9 +228,10 @@ def test_point_and_mesh_predictions_pair_either_way(point_sets, open_head_data, 
 class _PointAvatar:
     """What export_geometry reads of an avatar: per-frame parameters and ``geometry``."""
 
-    def __init__(self, T: int, P: int, radius_shape: str = "per point", surfel_min_cos: float = 0.0):
+    def __init__(self, T: int, P: int, radius_shape: str = "per point", surfel_min_cos: float = 0.0,
+                 hole_filling: bool = False):
         self.frames = {"translation": torch.zeros(T, 3)}
-        self.P, self.radius_shape, self.surfel_min_cos = P, radius_shape, surfel_min_cos
+        self.P, self.radius_shape, self.surfel_min_cos, self.hole_filling = P, radius_shape, surfel_min_cos, hole_filling
 
     def frame_params(self, rows):
         return {"rows": rows}
@@ -211,11 +248,13 @@ class _PointAvatar:
             else torch.full((self.P,), 2e-3)
         # strided views, as a model's outputs may be: the export must still write them correctly
         return Geometry(pts.transpose(0, 1).contiguous().transpose(0, 1), normals=normals,
-                        radius=radius, surfel_min_cos=self.surfel_min_cos)
+                        radius=radius, surfel_min_cos=self.surfel_min_cos, hole_filling=self.hole_filling)
 
 
-@pytest.mark.parametrize("radius_shape, surfel_min_cos", [("per point", 0.0), ("shared (P,)", 0.25)])
-def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, radius_shape, surfel_min_cos):
+@pytest.mark.parametrize("radius_shape, surfel_min_cos, hole_filling", [("per point", 0.0, False),
+                                                                       ("shared (P,)", 0.25, True)])
+def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, radius_shape, surfel_min_cos,
+                                                          hole_filling):
     from safetensors.numpy import load_file
 
     from headforge.avatars.engine import export_geometry
@@ -224,7 +263,7 @@ def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, 
     subject = point_sets["subject"]
     gt_frames = load_file(str(subject / "gt" / "geometry.safetensors"))["frames"]
     avatar = _PointAvatar(T=int(gt_frames.max()), P=50, radius_shape=radius_shape,  # the last GT frame is beyond T
-                          surfel_min_cos=surfel_min_cos)
+                          surfel_min_cos=surfel_min_cos, hole_filling=hole_filling)
     export_geometry(avatar, subject, tmp_path / "geometry.safetensors")
     assert not list(tmp_path.glob("*.tmp.*"))
     loaded = exported_geometry(tmp_path)
@@ -236,6 +275,7 @@ def test_the_engine_exports_a_point_avatar_as_a_point_set(point_sets, tmp_path, 
     assert loaded.radius.shape == (len(kept), 50)
     assert np.allclose(loaded.radius, want.radius.expand(len(kept), 50).numpy())
     assert loaded.surfel_min_cos == pytest.approx(surfel_min_cos)
+    assert loaded.hole_filling == hole_filling
 
 
 def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_sets, tmp_path):
@@ -264,6 +304,7 @@ def test_a_point_avatar_without_normals_or_radius_is_refused_at_export(point_set
     ("face_points without head_points", "lacks 'head_points'"),
     ("surfel_min_cos 0", "surfel_min_cos must be one value in (0, 1]"),
     ("surfel_min_cos (2,)", "surfel_min_cos must be one value in (0, 1]"),
+    ("hole_filling 2", "hole_filling must be one value, 0 or 1"),
 ])
 def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
     from headforge.metrics.benchmark import load_prediction
@@ -300,6 +341,8 @@ def test_a_bad_point_file_is_one_line_error(tmp_path, damage, message):
         arrays["surfel_min_cos"] = np.zeros(1, np.float32)
     elif damage == "surfel_min_cos (2,)":
         arrays["surfel_min_cos"] = np.full(2, 0.5, np.float32)
+    elif damage == "hole_filling 2":
+        arrays["hole_filling"] = np.array([2], np.uint8)
     save_file(arrays, str(tmp_path / "geometry.safetensors"))
     with pytest.raises(HeadforgeError) as err:
         load_prediction(tmp_path, np.arange(T))

@@ -486,6 +486,9 @@ def test_surfels_draw_the_points_as_their_tangent_discs_and_the_geometry_says_so
     assert torch.equal(a.points, b.points)
     assert b.coverage.sum() < a.coverage.sum() and (b.coverage > 0.5).any()
     assert discs.geometry(params).surfel_min_cos == 0 and surfels.geometry(params).surfel_min_cos == pytest.approx(0.2)
+    # the geometry says whether the renders fill holes, so the protocol scores the point set as drawn
+    assert discs.geometry(params).hole_filling
+    assert not method.build(assets, tiny_config(hole_filling=False)).geometry(params).hole_filling
     b.rgb.mean().backward()
     assert surfels.points.grad is not None and surfels.points.grad.abs().sum() > 0
     with pytest.raises(HeadforgeError, match="surfel_min_cos"):

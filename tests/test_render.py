@@ -481,3 +481,25 @@ def test_soft_matte_widens_only_the_edge_and_keeps_the_surface_colour():
     target, _ = soft_matte(rgb, cov, 1.25)
     sigma, scores = fit_sigma(rgb, cov, target, torch.ones_like(cov))
     assert sigma == 1.25 and min(s for _, s in scores) < 1e-10
+
+
+def test_close_holes_fills_gaps_between_splats_with_their_neighbours_mean_and_keeps_the_outline():
+    from headforge.render.points import close_holes
+
+    covered = torch.zeros(1, 12, 12, dtype=torch.bool)
+    covered[0, 2:10, 2:10] = True
+    covered[0, 5, 5] = False  # a one-pixel hole
+    covered[0, 3, 6:8] = False  # a two-pixel hole
+    values = torch.randn(1, 12, 12, 3)
+    filled, closed = close_holes(values, covered)
+    want = torch.zeros(1, 12, 12, dtype=torch.bool)
+    want[0, 2:10, 2:10] = True
+    assert torch.equal(closed, want)  # the holes closed, the square's outline kept
+    assert torch.equal(filled[covered], values[covered])
+    assert (filled[~closed] == 0).all()
+    ring = [(4, 4), (4, 5), (4, 6), (5, 4), (5, 6), (6, 4), (6, 5), (6, 6)]
+    mean = torch.stack([values[0, y, x] for y, x in ring]).mean(0)
+    assert torch.allclose(filled[0, 5, 5], mean, atol=1e-6)
+    # a pixel of the wide hole averages its covered neighbours only (not its uncovered twin)
+    around = [(y, x) for y in (2, 3, 4) for x in (5, 6, 7) if covered[0, y, x]]
+    assert torch.allclose(filled[0, 3, 6], torch.stack([values[0, y, x] for y, x in around]).mean(0), atol=1e-6)

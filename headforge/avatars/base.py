@@ -50,7 +50,9 @@ class Geometry:
     (what the geometry metrics score), or None when the method cannot tell; radius (B, V)
     world-space point radii (metres) for a point set (what a splat of it covers), else None;
     surfel_min_cos: a point set drawn as surfels (:func:`headforge.render.points.splat`'s
-    ``min_cos``), 0 for screen-facing discs.
+    ``min_cos``), 0 for screen-facing discs; hole_filling: the avatar's renders of the point set
+    close the holes between its splats (PointAvatar's supp. 2.3), so the geometry protocol's
+    normal maps do too.
     """
 
     vertices: torch.Tensor
@@ -60,6 +62,7 @@ class Geometry:
     head_vertices: torch.Tensor | None = None
     radius: torch.Tensor | None = None
     surfel_min_cos: float = 0.0
+    hole_filling: bool = False
 
 
 @dataclass

@@ -435,7 +435,7 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
     ``face_vertices``, ``head_vertices``) or, for a point avatar, a point set (``points`` (T, N, 3)
     metres, unit ``normals`` (T, N, 3), world ``radius`` (T, N) metres; the same N in every frame;
     ``face_points`` / ``head_points`` (N,) bool when the avatar tells its regions; ``surfel_min_cos``
-    (1,) when its points are drawn as surfels).
+    (1,) when its points are drawn as surfels; ``hole_filling`` (1,) when its renders fill holes).
     Written to a temporary name and renamed."""
     from safetensors.numpy import load_file, save_file
 
@@ -457,6 +457,8 @@ def export_geometry(avatar: Avatar, dataset: Path, path: Path) -> None:
             arrays |= {"face_points": as_np(g.face_vertices), "head_points": as_np(g.head_vertices)}
         if g.surfel_min_cos > 0:
             arrays["surfel_min_cos"] = np.array([g.surfel_min_cos], np.float32)
+        if g.hole_filling:
+            arrays["hole_filling"] = np.array([1], np.uint8)
     else:
         arrays = {"frames": frames.astype(np.int64), "vertices": cat("vertices"),
                   "faces": as_np(g.faces).astype(np.int64), "face_vertices": as_np(g.face_vertices),

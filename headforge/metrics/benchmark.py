@@ -41,7 +41,10 @@ for points as follows:
 
 - normal map: the points splatted (:func:`headforge.render.points.splat`, K = 8) as discs of
   ``fx * radius / depth`` pixels carrying their normals; the composited normals renormalised; a
-  pixel is covered where the splat's accumulated alpha exceeds 0.5. The normal errors,
+  pixel is covered where the splat's accumulated alpha exceeds 0.5; for an avatar whose renders
+  fill the holes between splats (``hole_filling`` in the file: PointAvatar's supp. 2.3) the
+  covered pixels are closed (3x3, as the avatar's render mask) and each added pixel takes the
+  mean normal of its covered neighbours. The normal errors,
   ``head_coverage`` and the paired figures then follow the mesh definitions on those pixels.
 - regions: a point set that carries its own per-point masks ``face_points`` / ``head_points``
   (P,) (PointAvatar's export: the region of each point's nearest canonical head-model vertex)
@@ -97,6 +100,7 @@ class PredictedGeometry:
     normals: np.ndarray | None = None  # (N, V, 3) unit point normals of a point set
     radius: np.ndarray | None = None  # (N, V) world-space point radii (metres) of a point set
     surfel_min_cos: float = 0.0  # > 0: the point set is drawn as surfels (render.points.splat's min_cos)
+    hole_filling: bool = False  # the point set's renders close the holes between splats (render.points.close_holes)
 
     @property
     def is_points(self) -> bool:
@@ -217,8 +221,14 @@ def _point_geometry(path: Path, arrays: dict[str, np.ndarray], source: str) -> P
         if value.shape != (1,) or not 0 < value[0] <= 1:
             raise HeadforgeError(f"{path}: surfel_min_cos must be one value in (0, 1], got {value}")
         min_cos = float(value[0])
+    fill = False
+    if "hole_filling" in arrays:
+        value = np.asarray(arrays["hole_filling"]).ravel()
+        if value.shape != (1,) or value[0] not in (0, 1):
+            raise HeadforgeError(f"{path}: hole_filling must be one value, 0 or 1, got {value}")
+        fill = bool(value[0])
     return PredictedGeometry(frames.astype(np.int64), points, None, face, head, source,
-                             normals=normals / length, radius=radius, surfel_min_cos=min_cos)
+                             normals=normals / length, radius=radius, surfel_min_cos=min_cos, hole_filling=fill)
 
 
 SUBJECT_KEYS = ("train_frames", "intrinsics", "resolution", "labels", "head_labels", "subject")
@@ -300,14 +310,16 @@ def render_normals(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, resol
 
 
 def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K: np.ndarray,
-                  resolution: int, k: int = 8, surfel_min_cos: float = 0.0) -> np.ndarray:
+                  resolution: int, k: int = 8, surfel_min_cos: float = 0.0, hole_filling: bool = False) -> np.ndarray:
     """(R, R, 3) camera-space unit normals of a camera-space point set (P, 3) with normals (P, 3)
     and world radii (P,) metres, zero where empty: discs of ``fx * radius / depth`` pixels (or
     surfels of that radius when ``surfel_min_cos`` > 0, as the avatar drew them), the ``k``
     nearest in depth composited front to back, renormalised, kept where the accumulated alpha
-    exceeds 0.5 (the point-set counterpart of :func:`render_normals`)."""
+    exceeds 0.5 (the point-set counterpart of :func:`render_normals`); with ``hole_filling`` (an
+    avatar whose renders fill the holes between splats) the covered pixels are closed and each
+    added pixel takes the mean normal of its covered neighbours (:func:`close_holes`)."""
     from headforge.render.camera import Cameras
-    from headforge.render.points import splat
+    from headforge.render.points import close_holes, splat
 
     p = torch.from_numpy(np.asarray(points, np.float32))[None]
     n = torch.from_numpy(np.asarray(normals, np.float32))[None]
@@ -316,7 +328,11 @@ def splat_normals(points: np.ndarray, normals: np.ndarray, radius: np.ndarray, K
     surfels = {"normals": n, "min_cos": surfel_min_cos} if surfel_min_cos > 0 else {}
     image = splat(cams, p, n, r_px, K=k, **surfels)
     out = torch.nn.functional.normalize(image.features, dim=-1)
-    return torch.where(image.mask[..., None] > 0.5, out, torch.zeros(3))[0].numpy()
+    covered = image.mask > 0.5
+    if hole_filling:
+        out, covered = close_holes(out, covered)
+        out = torch.nn.functional.normalize(out, dim=-1)
+    return torch.where(covered[..., None], out, torch.zeros(3))[0].numpy()
 
 
 def prediction_normals(prediction: PredictedGeometry, row: int, K: np.ndarray, resolution: int) -> np.ndarray:
@@ -324,7 +340,7 @@ def prediction_normals(prediction: PredictedGeometry, row: int, K: np.ndarray, r
     a point set; zero where it does not cover."""
     if prediction.is_points:
         return splat_normals(prediction.vertices[row], prediction.normals[row], prediction.radius[row], K, resolution,
-                             surfel_min_cos=prediction.surfel_min_cos)
+                             surfel_min_cos=prediction.surfel_min_cos, hole_filling=prediction.hole_filling)
     return render_normals(prediction.vertices[row], prediction.faces, K, resolution)
 
 
@@ -420,13 +436,15 @@ def gt_point_labels(points: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarr
 def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices: np.ndarray,
                     pred_faces: np.ndarray | None, K: np.ndarray, resolution: int,
                     yaws_deg: tuple[float, ...] = (0.0, 60.0, 90.0, 150.0), pred_normals: np.ndarray | None = None,
-                    pred_radius: np.ndarray | None = None, pred_surfel_min_cos: float = 0.0) -> np.ndarray:
+                    pred_radius: np.ndarray | None = None, pred_surfel_min_cos: float = 0.0,
+                    pred_hole_filling: bool = False) -> np.ndarray:
     """(2R, len(yaws) R, 3) normal-map picture in [0, 1]: the GT mesh (top row) and the
     prediction (bottom row), both camera space in metres, turned by the same ``yaws_deg`` about
     the camera's vertical axis through the GT mesh's centroid. The frontal error map shows only
     what the camera saw; these views show the top and back, which a monocular clip rarely does.
     A point-set prediction: ``pred_faces`` None, its ``pred_normals`` and ``pred_radius`` given
-    (and ``pred_surfel_min_cos`` when it is drawn as surfels)."""
+    (and ``pred_surfel_min_cos`` when it is drawn as surfels, ``pred_hole_filling`` when its renders
+    fill holes)."""
     pivot = np.asarray(gt_vertices, np.float64).mean(0)
     rows = []
     for verts, faces, normals in ((gt_vertices, gt_faces, None), (pred_vertices, pred_faces, pred_normals)):
@@ -437,7 +455,7 @@ def turntable_views(gt_vertices: np.ndarray, gt_faces: np.ndarray, pred_vertices
             R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
             if faces is None:
                 n = splat_normals(centred @ R.T + pivot, normals @ R.T, pred_radius, K, resolution,
-                                  surfel_min_cos=pred_surfel_min_cos)
+                                  surfel_min_cos=pred_surfel_min_cos, hole_filling=pred_hole_filling)
             else:
                 n = render_normals(centred @ R.T + pivot, faces, K, resolution)
             tiles.append(np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, 0.5 * (n + 1), 0.5))
@@ -784,7 +802,8 @@ def evaluate_geometry(pred: str | Path, subject: str | Path, split: str = "val",
             if views is None:
                 views = turntable_views(gv, gf, aligned, None, K, res, pred_normals=aligned_n,
                                         pred_radius=prediction.radius[i],
-                                        pred_surfel_min_cos=prediction.surfel_min_cos)
+                                        pred_surfel_min_cos=prediction.surfel_min_cos,
+                                        pred_hole_filling=prediction.hole_filling)
         else:
             scores, aligned = _mesh_distances(prediction, verts, gv, gf, gt["labels"], labels_face, outer, skin,
                                               samples, face_sel, head_sel, seen)

@@ -136,3 +136,26 @@ def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius
     max_weight = torch.zeros(B, N, dtype=weight.dtype, device=weight.device)
     max_weight = max_weight.scatter_reduce(1, safe, torch.where(valid, weight, torch.zeros_like(weight)).reshape(B, -1).detach(), reduce="amax")
     return PointImage(out, mask, max_weight, PointFragments(idx, frag_depth.to(xyz.dtype)))
+
+
+def close_mask(mask: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) the 3x3 morphological closing (dilation, then erosion) of a coverage ``mask``
+    (B, H, W) in [0, 1]: holes up to two pixels wide between splatted points are filled, the
+    outline of a convex region is kept (PointAvatar's hole filling, supp. 2.3, on the mask)."""
+    pool = torch.nn.functional.max_pool2d
+    return -pool(-pool(mask[:, None], 3, 1, 1), 3, 1, 1)[:, 0]
+
+
+def close_holes(values: torch.Tensor, covered: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fill the holes of a splatted map: ``values`` (B, H, W, C) meaningful where ``covered``
+    (B, H, W) bool. Returns (values, covered) with ``covered`` closed (:func:`close_mask`) and
+    each newly covered pixel set to the mean of its covered 3x3 neighbours (every pixel the
+    closing adds has one); covered pixels keep their values."""
+    cov = covered.to(values.dtype)
+    closed = close_mask(cov) > 0.5
+    pool = lambda t: torch.nn.functional.avg_pool2d(t, 3, 1, 1, count_include_pad=False)  # noqa: E731
+    total = pool((values * cov[..., None]).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+    count = pool(cov[:, None])[:, 0]
+    mean = total / count.clamp(min=1e-12)[..., None]
+    filled = torch.where((closed & ~covered)[..., None], mean, torch.where(covered[..., None], values, torch.zeros_like(values)))
+    return filled, closed

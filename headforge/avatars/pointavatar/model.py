@@ -32,7 +32,7 @@ from headforge.head.landmarks import INNER_LIP_LOOP, N_MEDIAPIPE
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FLIP, FRAME_KEYS, head_to_camera
 from headforge.render.camera import Cameras
-from headforge.render.points import splat
+from headforge.render.points import close_mask, splat
 from headforge.render.shading import lambert, sh_shading
 
 CANONICAL_JAW = 0.4  # rad, the canonical pose's jaw opening (authors' code)
@@ -349,7 +349,8 @@ class PointAvatarModel(Avatar):
                                     self.head.num_vertices)
         as_mask = lambda m: torch.from_numpy(m[nearest]).to(pts.device)  # noqa: E731
         return Geometry(pts, normals=n_cam, radius=self.radius.expand(pts.shape[:2]), face_vertices=as_mask(face),
-                        head_vertices=as_mask(head), surfel_min_cos=self.surfel_min_cos)
+                        head_vertices=as_mask(head), surfel_min_cos=self.surfel_min_cos,
+                        hole_filling=self.hole_filling)
 
     # ---- coarse to fine ---------------------------------------------------------------------
     def prune(self) -> int:
@@ -450,13 +451,12 @@ def fill_holes(features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor
     closes single-pixel white holes between sparse points; features (B, H, W, C) pre-multiplied,
     mask (B, H, W). Returns pre-multiplied features and mask again."""
     pool = torch.nn.functional.max_pool2d
-    img = torch.cat([features + (1 - mask[..., None]), mask[..., None]], -1).permute(0, 3, 1, 2)
+    img = (features + (1 - mask[..., None])).permute(0, 3, 1, 2)
     # erosion of the image (min filter: dark points grow over white holes), then dilation; the mask
     # the other way round (a closing: its holes filled)
-    eroded = -pool(-img[:, :-1], 3, 1, 1)
+    eroded = -pool(-img, 3, 1, 1)
     opened = pool(eroded, 3, 1, 1)
-    closed = -pool(-pool(img[:, -1:], 3, 1, 1), 3, 1, 1)
-    m = closed[:, 0]
+    m = close_mask(mask)
     f = opened.permute(0, 2, 3, 1)
     return f - (1 - m[..., None]), m
 
