@@ -591,7 +591,7 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
     assert metrics["novel_yaw+20_frames"] >= 1 and 5 < metrics["novel_yaw+20_psnr"] < 60
     assert "val_akd_px" in metrics and metrics["val_landmark_frames"] <= metrics["val_frames"]
     for name in ("progress.png", "metrics.json", "losses.csv", "checkpoint.safetensors", "geometry.safetensors",
-                 "val_worst.png", "run.json", "assets/tracking.safetensors", "assets/dataset.json"):
+                 "val_worst.png", "novel_views.png", "run.json", "assets/tracking.safetensors", "assets/dataset.json"):
         assert (run / name).is_file(), name
     assert str(dataset.parent) not in (run / "run.json").read_text()  # no absolute paths
     assert list((run / "val").glob("*.png"))
@@ -622,6 +622,12 @@ def test_fit_resumes_exports_and_renders(synth_bench, tiny_config, tmp_path, int
                               "--orbit", "--max-frames", "3"])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "re.mp4").stat().st_size > 1000
+    # headforge eval RUN SUBJECT --protocol scores the held-out frames and the novel views again, as the fit did
+    res = runner.invoke(app, ["eval", str(run), str(dataset), "--protocol", "--json", "-o", str(tmp_path / "rescored")])
+    assert res.exit_code == 0, res.output
+    rescored = json.loads(res.stdout.strip().splitlines()[-1])
+    assert rescored["novel_yaw+20_psnr"] == pytest.approx(metrics["novel_yaw+20_psnr"], abs=1e-3)
+    assert (tmp_path / "rescored" / "novel_views.png").is_file()
 
 
 def test_nha_bad_inputs(tmp_path, tiny_config):

@@ -360,3 +360,37 @@ def test_a_flame_run_references_the_users_files_by_hash_never_a_copy(tmp_path, m
     run = tmp_path / "run"
     assets.save(run)
     assert not list(run.rglob("*.pkl")) and b"my FLAME" not in (run / "assets" / "dataset.json").read_bytes()
+
+
+def test_novel_views_orbit_the_avatar_about_its_own_counterpart_of_the_head_origin(synth_bench):
+    """Synth orbits its camera about the head origin c; a tracked head s times as far as the
+    subject's (the monocular scale) is orbited about s c, on the same camera ray, so the tracking's
+    depth error is not charged as a view-synthesis error; a frame without GT geometry is refused."""
+    from safetensors.numpy import load_file
+
+    from headforge.avatars.engine import novel_view_centres
+    from headforge.bench.synthetic import LABELS
+
+    subject = synth_bench[0] / "subject_00"
+    gt = load_file(str(subject / "gt" / "geometry.safetensors"))
+    centre = torch.tensor(json.loads((subject / "gt" / "subject.json").read_text())["translation"])
+    eyes = gt["labels"] == LABELS["eyes"]
+
+    class ScaledTruth:  # a "tracked head" whose eyeballs are the GT eyes scaled by s about the camera
+        def __init__(self, s):
+            self.s = s
+            self.model = type("M", (), {"region": staticmethod(lambda name: torch.arange(int(eyes.sum())))})()
+
+        def vertices(self, params):
+            rows = params["row"]
+            return self.s * torch.from_numpy(gt["vertices"][rows.numpy()][:, eyes])
+
+    frames = torch.from_numpy(gt["frames"][:2])
+    tracked = {"row": torch.full((int(frames.max()) + 1,), -1, dtype=torch.long)}
+    tracked["row"][frames] = torch.arange(2)
+    for s in (1.0, 1.07):
+        got = novel_view_centres(subject, frames, ScaledTruth(s), tracked)
+        assert torch.allclose(got, s * centre.expand(2, 3), atol=1e-5)
+    bad = torch.tensor([int(gt["frames"].max()) + 1])
+    with pytest.raises(HeadforgeError, match="no ground-truth geometry"):
+        novel_view_centres(subject, bad, ScaledTruth(1.0), {"row": torch.zeros(int(bad) + 1, dtype=torch.long)})

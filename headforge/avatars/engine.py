@@ -347,7 +347,8 @@ def _train_and_score(ctx: TrainingContext, run: Path, dataset: Path, stages: lis
     if (dataset / "gt" / "views").is_dir():
         from headforge.head.pose import from_tracking
 
-        metrics |= score_novel_views(method, avatar, dataset, val_all, head, from_tracking(assets.tracking), config)
+        metrics |= score_novel_views(method, avatar, dataset, val_all, head, from_tracking(assets.tracking), config,
+                                     picture=run / "novel_views.png")
     if (dataset / "gt" / "geometry.safetensors").is_file():
         export_geometry(avatar, dataset, run / "geometry.safetensors")
     metrics |= {"iterations": total, "resolution": config.resolution, "lpips": "n/a (no pretrained weights)",
@@ -379,25 +380,57 @@ def write_worst_frames(method: Method, avatar: Avatar, data: FrameData, config, 
 
 
 @torch.no_grad()
+def novel_view_centres(dataset: Path, frames: torch.Tensor, head, tracked: dict) -> torch.Tensor:
+    """(B, 3) camera-space orbit centres for the novel views of a synth subject's ``frames`` (B,),
+    for an avatar built on the dataset's tracking.
+
+    Synth orbits its camera about the head origin ``c`` (``gt/subject.json`` "translation").
+    A monocular clip fixes a head only up to a scale about the camera (a head s times larger and
+    s times farther gives the same images), and the tracked head sits s = z_tracked / z_gt as far
+    as the subject's, measured at the eyeballs' midpoint (the tracked head model's ``eyeballs``
+    posed at ``tracked``, the GT's ``eyes`` vertices in gt/geometry.safetensors). The avatar's
+    counterpart of ``c`` is then s c, on the same camera ray: orbiting about ``c`` itself would
+    charge the avatar its tracking's depth error (s (R (x - c) + c) = R (s x - s c) + s c)."""
+    from safetensors.numpy import load_file
+
+    from headforge.bench.synthetic import LABELS
+
+    info = json.loads((dataset / "gt" / "subject.json").read_text())
+    centre = torch.tensor(info["translation"], dtype=torch.float32)
+    gt = load_file(str(dataset / "gt" / "geometry.safetensors"))
+    row = {int(f): i for i, f in enumerate(gt["frames"])}
+    missing = [int(f) for f in frames.tolist() if int(f) not in row]
+    if missing:
+        raise HeadforgeError(f"{dataset}: novel views of frames {missing[:5]} have no ground-truth geometry")
+    eyes = gt["labels"] == LABELS["eyes"]
+    gt_z = torch.from_numpy(gt["vertices"][[row[int(f)] for f in frames.tolist()]][:, eyes, 2].mean(1))
+    ids = head.model.region("eyeballs")
+    tracked_z = head.vertices({k: v[frames.cpu()] for k, v in tracked.items()})[:, ids, 2].mean(1)
+    return centre * (tracked_z / gt_z.float())[:, None]
+
+
 def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: FrameData, head, tracked: dict,
-                      config) -> dict:
+                      config, picture: Path | None = None) -> dict:
     """The protocol's scores of the avatar from the novel views a synth subject carries
     (``gt/views/FRAME_yaw±D.png``, RGBA: the camera orbited by D degrees about the head's
-    vertical axis through its origin), at the held-out frames' fitted parameters (NHA Sec. 4.4);
-    the scored regions from the tracked head model (``head``) at its ``tracked`` parameters."""
+    vertical axis through its origin), at the held-out frames' fitted parameters (NHA Sec. 4.4),
+    the avatar's camera orbited by the same angle about its counterpart of that origin
+    (:func:`novel_view_centres`); the scored regions from the tracked head model (``head``) at
+    its ``tracked`` parameters. ``picture``: a PNG of the last scored frame, a row per angle of
+    view | avatar | |difference| x 4, as scored (both on white inside the head region)."""
     from PIL import Image
     from scipy.spatial.transform import Rotation
 
     from headforge.head.pose import flip_matrix
-    from headforge.metrics.protocol import score_frames, summarise
+    from headforge.metrics.protocol import composite, score_frames, summarise
     from headforge.render.camera import Cameras
+    from headforge.render.io import write_png
 
     path = dataset / "gt" / "subject.json"
     if not path.is_file():
         return {}
     info = json.loads(path.read_text())
-    centre = torch.tensor(info["translation"], dtype=torch.float32)  # the head origin in the camera frame
-    out = {}
+    out, tiles = {}, []
     flip = flip_matrix()
     position = {int(f): i for i, f in enumerate(data.index.tolist())}
     for yaw in info.get("novel_yaws", []):
@@ -406,8 +439,6 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
         if not rows:
             continue
         R = torch.tensor(flip @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip, dtype=torch.float32)
-        t = centre - R @ centre
-        R, t = R.to(data.K.device), t.to(data.K.device)  # the cameras on the frames' device
         per_frame = {}
         for chunk in range(0, len(rows), config.batch):
             sel = torch.tensor(rows[chunk:chunk + config.batch])
@@ -415,16 +446,23 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
                     for p in files[chunk:chunk + config.batch]]
             rgba = torch.from_numpy(np.stack(rgba)).to(data.K.device)
             B = len(sel)
-            cams = Cameras(data.K.expand(B, 3, 3), R.expand(B, 3, 3), t.expand(B, 3), config.resolution, config.resolution)
             frames = data.index[sel.to(data.index.device)]
+            centres = novel_view_centres(dataset, frames.cpu(), head, tracked)
+            t = (centres - centres @ R.T).to(data.K.device)  # c - R c, per frame
+            cams = Cameras(data.K.expand(B, 3, 3), R.to(data.K.device).expand(B, 3, 3), t, config.resolution,
+                           config.resolution)
             params = avatar.frame_params(frames)
             region, face = head.regions({k: v[frames.cpu()] for k, v in tracked.items()}, cams)  # tracked: on the CPU
             r = method.render_for_scoring(avatar, params, cams)
             s = score_frames(r.rgb, r.coverage, rgba[..., :3], rgba[..., 3], region, face, landmarks=False)
             for k, v in s.items():
                 per_frame.setdefault(k, []).append(v)
+        pred, gt = composite(r.rgb[-1:], rgba[-1:, ..., :3], rgba[-1:, ..., 3], region[-1:])
+        tiles.append(torch.cat([gt[0], pred[0], ((pred[0] - gt[0]).abs() * 4).clamp(0, 1)], 1).cpu())
         summary = summarise({k: np.concatenate(v) for k, v in per_frame.items()})
         out |= {f"novel_yaw{yaw:+.0f}_{k}": v for k, v in summary.items() if k in ("psnr", "ssim", "l1", "psnr_head", "frames")}
+    if picture is not None and tiles:
+        write_png(picture, torch.cat(tiles, 0).clamp(0, 1))
     return out
 
 
@@ -506,8 +544,8 @@ def plot_progress(run: Path) -> None:
 
 def evaluate_run(run: Path, dataset: Path, output: Path, log=print) -> dict:
     """The protocol's scores of a run's held-out frames (at its fitted parameters) against
-    ``dataset``, the run's own dataset (checked by fingerprint): ``output``/metrics.json,
-    metrics.md, val_worst.png and frame | avatar PNGs."""
+    ``dataset``, the run's own dataset (checked by fingerprint), and of the novel views when it
+    is a synth subject: ``output``/metrics.json, metrics.md, val_worst.png and frame | avatar PNGs."""
     from headforge.avatars.run import load_run
     from headforge.metrics.protocol import TrackedHead
 
@@ -520,6 +558,11 @@ def evaluate_run(run: Path, dataset: Path, output: Path, log=print) -> dict:
     output.mkdir(parents=True, exist_ok=True)
     summary, per_frame = score(r.method, r.avatar, val, r.config, output, max_images=8, landmarks=True)
     write_worst_frames(r.method, r.avatar, val, r.config, per_frame, output / "val_worst.png")
+    if (dataset / "gt" / "views").is_dir():
+        from headforge.head.pose import from_tracking
+
+        summary |= score_novel_views(r.method, r.avatar, dataset, val, head, from_tracking(r.assets.tracking), r.config,
+                                     picture=output / "novel_views.png")
     (output / "metrics.json").write_text(json.dumps(summary, indent=1))
     table = ["| figure | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in summary.items()]
     (output / "metrics.md").write_text("\n".join(table) + "\n")
