@@ -228,6 +228,39 @@ def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(r
         avatar.prune()  # nothing was visible since
 
 
+def test_a_training_step_marks_visible_the_points_composited_above_half_or_nearest_on_a_pixel(rendered):
+    """The authors' rule for what the prunes keep: a point composited with a weight above 1/2 or
+    the nearest on some pixel (``prune_keeps_front``, default); off, the weight alone, which
+    drops points that are only ever seen at grazing angles."""
+    from headforge.avatars import registry
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+    from headforge.render.camera import Cameras
+
+    method = registry.get("pointavatar")
+    assets = RunAssets.from_dataset(rendered)
+    config = tiny_config(max_points=6000)
+    torch.manual_seed(0)
+    avatar = method.build(assets, config)
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(3):  # a denser cloud, so that discs overlap
+        avatar.upsample(gen, 1.0, spread=1.0)
+    avatar.visible[:] = False
+    train = FrameData(rendered, "train", config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    batch = train.batch(torch.arange(2))
+    with torch.no_grad():
+        r = avatar.render(avatar.frame_params(batch["index"]), Cameras.at_origin(train.K, 2, config.resolution),
+                          background=1.0, training=True, hole_filling=False)
+    method.losses(avatar, batch, train.K, config, "train")
+    both = avatar.visible.clone()
+    assert torch.equal(both, ((r.max_weight > 0.5) | r.front).any(0))
+    avatar.visible[:] = False
+    method.losses(avatar, batch, train.K, tiny_config(max_points=6000, prune_keeps_front=False), "train")
+    assert torch.equal(avatar.visible, (r.max_weight > 0.5).any(0))
+    assert (both & ~avatar.visible).any()  # points only the front rule keeps
+
+
 def test_a_killed_pointavatar_run_resumes_to_the_same_result(rendered, tmp_path, interrupt_after):
     from headforge.avatars.engine import fit
 

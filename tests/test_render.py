@@ -368,6 +368,7 @@ def test_splat_torch_backend_equals_numba_backend(dtype):
     torch.testing.assert_close(b.features, a.features, atol=0, rtol=0)
     torch.testing.assert_close(b.mask, a.mask, atol=0, rtol=0)
     torch.testing.assert_close(b.max_weight, a.max_weight, atol=0, rtol=0)
+    assert torch.equal(b.front, a.front)
     for ga, gb in zip(*grads):
         torch.testing.assert_close(gb, ga, atol=0, rtol=0)
     assert a.mask.max() > 0.9 and b.fragments.depth.dtype == dtype
@@ -418,6 +419,21 @@ def test_point_max_weight_and_front_to_back_order():
     # the far point shows only where the near disc thins out: weight (1 - a) a <= 1/4
     assert 0.2 < out.max_weight[0, 0] <= 0.25
     assert out.fragments.idx[0, 7, 7, 0].item() == 1 and centre[2] > 0
+    assert out.front[0].tolist() == [False, True]  # the far point is nearest on no pixel
+
+
+def test_point_front_marks_the_first_fragment_of_some_pixel():
+    """``front``: the points nearest on at least one pixel (PyTorch3D's first fragment), which
+    PointAvatar's prunes keep besides those composited above 1/2 -- in a cloud, some points are
+    nearest only where their discs thin out, with a largest weight under 1/2."""
+    gen = torch.Generator().manual_seed(7)
+    pts = (torch.rand(1, 400, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.12
+    out = points.splat(_cams(32), pts, torch.ones(1, 400, 1, dtype=torch.float64), radius=2.0, K=4)
+    first = out.fragments.idx[0, ..., 0]
+    want = torch.zeros(400, dtype=torch.bool)
+    want[first[first >= 0]] = True
+    assert torch.equal(out.front[0], want)
+    assert (out.front[0] & (out.max_weight[0] <= 0.5)).any() and not out.front[0].all()
 
 
 def test_points_bad_input():

@@ -32,13 +32,15 @@ class PointFragments:
 @dataclass
 class PointImage:
     """features: (B, H, W, C) composited features; mask: (B, H, W) accumulated alpha;
-    max_weight: (B, N) each point's largest compositing weight (PointAvatar prunes points
-    whose weight never exceeds 0.5); fragments: the visibility used."""
+    max_weight: (B, N) each point's largest compositing weight; front: (B, N) bool, the point is
+    the nearest on at least one pixel (PyTorch3D's first fragment; PointAvatar keeps the points
+    that are either, and prunes the rest); fragments: the visibility used."""
 
     features: torch.Tensor
     mask: torch.Tensor
     max_weight: torch.Tensor
     fragments: PointFragments
+    front: torch.Tensor
 
 
 def _radius(radius: torch.Tensor | float, B: int, N: int, like: torch.Tensor) -> torch.Tensor:
@@ -135,7 +137,9 @@ def splat(cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius
         out = out + (1 - mask[..., None]) * background.to(out.dtype)
     max_weight = torch.zeros(B, N, dtype=weight.dtype, device=weight.device)
     max_weight = max_weight.scatter_reduce(1, safe, torch.where(valid, weight, torch.zeros_like(weight)).reshape(B, -1).detach(), reduce="amax")
-    return PointImage(out, mask, max_weight, PointFragments(idx, frag_depth.to(xyz.dtype)))
+    first = torch.where(valid[..., 0], idx[..., 0], N).reshape(B, -1)  # N: an empty pixel's slot
+    front = torch.zeros(B, N + 1, dtype=torch.bool, device=idx.device).scatter_(1, first, True)[:, :N]
+    return PointImage(out, mask, max_weight, PointFragments(idx, frag_depth.to(xyz.dtype)), front)
 
 
 def close_mask(mask: torch.Tensor) -> torch.Tensor:

@@ -120,7 +120,8 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
             out |= landmark_terms(avatar, params, batch["landmarks"], K, config)
         return out
     with torch.no_grad():
-        avatar.visible |= (r.max_weight > 0.5).any(0)
+        seen = r.max_weight > 0.5
+        avatar.visible |= (seen | r.front).any(0) if config.prune_keeps_front else seen.any(0)
     out["mask"] = config.w_mask * ((r.coverage - batch["mask"]).abs() * region).sum() / region.sum().clamp(min=1)
     if config.w_ssim > 0:
         out["ssim"] = config.w_ssim * (1 - ssim(r.rgb * w + (1 - w), target * w + (1 - w)).mean())

@@ -44,11 +44,13 @@ MOUTH_DEPTH = 0.015  # m: how far behind the lips' opening the seeded mouth poin
 @dataclass(kw_only=True)
 class PointRender(AvatarRender):
     """PointAvatar's render: rgb, coverage, camera-space normals (when asked for), and per
-    point: ``max_weight`` (B, N) the largest compositing weight (pruning), ``points`` and
+    point: ``max_weight`` (B, N) the largest compositing weight and ``front`` (B, N) bool, the
+    nearest on some pixel (what the prunes keep), ``points`` and
     ``point_normals`` (B, N, 3) the posed points and their unit normals in camera space;
     ``albedo`` / ``shading`` (B, H, W, 3) composited when asked for (pictures, relighting tests)."""
 
     max_weight: torch.Tensor
+    front: torch.Tensor
     canonical: "Canonical"
     points: torch.Tensor
     point_normals: torch.Tensor
@@ -326,7 +328,8 @@ class PointAvatarModel(Avatar):
         if hole_filling if hole_filling is not None else (self.hole_filling and not training):
             f, mask = fill_holes(f, mask)
         rgb = f[..., :3] + (1 - mask[..., None]) * background
-        out = PointRender(rgb, mask, max_weight=img.max_weight, canonical=c, points=pts, point_normals=n_cam)
+        out = PointRender(rgb, mask, max_weight=img.max_weight, front=img.front, canonical=c, points=pts,
+                          point_normals=n_cam)
         i = 3
         if normals:
             out.normals = torch.nn.functional.normalize(f[..., i:i + 3], dim=-1) * (mask[..., None] > 1e-3)
@@ -354,7 +357,8 @@ class PointAvatarModel(Avatar):
 
     # ---- coarse to fine ---------------------------------------------------------------------
     def prune(self) -> int:
-        """Drop the points never composited with a weight above 0.5 since the last prune;
+        """Drop the points not ``visible`` since the last prune (never composited with a weight
+        above 0.5 and, unless ``prune_keeps_front`` is off, never the nearest on a pixel);
         returns how many. Every point invisible is an error (nothing would be left to train)."""
         keep = self.visible
         if not bool(keep.any()):
