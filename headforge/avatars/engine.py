@@ -439,6 +439,7 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
         if not rows:
             continue
         R = torch.tensor(flip @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip, dtype=torch.float32)
+        centres = novel_view_centres(dataset, data.index[torch.tensor(rows).to(data.index.device)].cpu(), head, tracked)
         per_frame = {}
         for chunk in range(0, len(rows), config.batch):
             sel = torch.tensor(rows[chunk:chunk + config.batch])
@@ -447,8 +448,8 @@ def score_novel_views(method: Method, avatar: Avatar, dataset: Path, data: Frame
             rgba = torch.from_numpy(np.stack(rgba)).to(data.K.device)
             B = len(sel)
             frames = data.index[sel.to(data.index.device)]
-            centres = novel_view_centres(dataset, frames.cpu(), head, tracked)
-            t = (centres - centres @ R.T).to(data.K.device)  # c - R c, per frame
+            c = centres[chunk:chunk + config.batch]
+            t = (c - c @ R.T).to(data.K.device)  # c - R c, per frame
             cams = Cameras(data.K.expand(B, 3, 3), R.to(data.K.device).expand(B, 3, 3), t, config.resolution,
                            config.resolution)
             params = avatar.frame_params(frames)

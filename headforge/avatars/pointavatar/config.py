@@ -28,7 +28,7 @@ class PointAvatarConfig(EngineConfig):
     upsample_every: int = 625  # iterations between doublings (the authors' 5 epochs)
     prune_every: int = 125  # iterations between prunes (one epoch)
     # the authors' code keeps a point composited above 0.5 *or* nearest on some pixel; False: the
-    # weight alone (headforge before 2026-12-07: the sides of the head thinned to stripes)
+    # weight alone (headforge before 2026-12-07; docs/pointavatar.md has both measured)
     prune_keeps_front: bool = True
     points_per_pixel: int = 10
     # 0: every point a screen-facing disc (the paper's PyTorch3D points); > 0: its tangent disc (a
