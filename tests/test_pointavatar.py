@@ -259,6 +259,10 @@ def test_a_training_step_marks_visible_the_points_composited_above_half_or_neare
     method.losses(avatar, batch, train.K, tiny_config(max_points=6000, prune_keeps_front=False), "train")
     assert torch.equal(avatar.visible, (r.max_weight > 0.5).any(0))
     assert (both & ~avatar.visible).any()  # points only the front rule keeps
+    from headforge.avatars.pointavatar.config import PointAvatarConfig
+
+    # the paper preset prunes by the authors' rule; quick by the weight alone (deviation 18)
+    assert PointAvatarConfig.paper().prune_keeps_front and not PointAvatarConfig.quick().prune_keeps_front
 
 
 def test_a_killed_pointavatar_run_resumes_to_the_same_result(rendered, tmp_path, interrupt_after):
