@@ -362,7 +362,7 @@ def test_a_flame_run_references_the_users_files_by_hash_never_a_copy(tmp_path, m
     assert not list(run.rglob("*.pkl")) and b"my FLAME" not in (run / "assets" / "dataset.json").read_bytes()
 
 
-def test_novel_views_orbit_the_avatar_about_its_own_counterpart_of_the_head_origin(synth_bench):
+def test_novel_views_orbit_the_avatar_about_its_own_counterpart_of_the_head_origin(synth_bench, tmp_path):
     """Synth orbits its camera about the head origin c; a tracked head s times as far as the
     subject's (the monocular scale) is orbited about s c, on the same camera ray, so the tracking's
     depth error is not charged as a view-synthesis error; a frame without GT geometry is refused."""
@@ -394,3 +394,8 @@ def test_novel_views_orbit_the_avatar_about_its_own_counterpart_of_the_head_orig
     bad = torch.tensor([int(gt["frames"].max()) + 1])
     with pytest.raises(HeadforgeError, match="no ground-truth geometry"):
         novel_view_centres(subject, bad, ScaledTruth(1.0), {"row": torch.zeros(int(bad) + 1, dtype=torch.long)})
+    broken = tmp_path / "broken_subject"
+    (broken / "gt").mkdir(parents=True)
+    shutil.copy(subject / "gt" / "subject.json", broken / "gt" / "subject.json")
+    with pytest.raises(HeadforgeError, match="no gt/geometry.safetensors"):
+        novel_view_centres(broken, frames, ScaledTruth(1.0), tracked)

@@ -397,7 +397,11 @@ def novel_view_centres(dataset: Path, frames: torch.Tensor, head, tracked: dict)
 
     info = json.loads((dataset / "gt" / "subject.json").read_text())
     centre = torch.tensor(info["translation"], dtype=torch.float32)
-    gt = load_file(str(dataset / "gt" / "geometry.safetensors"))
+    path = dataset / "gt" / "geometry.safetensors"
+    if not path.is_file():
+        raise HeadforgeError(f"{dataset} has novel views but no gt/geometry.safetensors to place their orbit: "
+                             "a broken headforge synth subject (run headforge synth again)")
+    gt = load_file(str(path))
     row = {int(f): i for i, f in enumerate(gt["frames"])}
     missing = [int(f) for f in frames.tolist() if int(f) not in row]
     if missing:
