@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
 
 from headforge.errors import HeadforgeError
-from headforge.metrics.benchmark import (_face_subset, _icp_to_face, _moved, load_prediction, load_subject_gt,
-                                         prediction_rows, split_rows)
+from headforge.metrics.benchmark import (_face_samples, _face_subset, _icp_to_face, _moved, load_prediction,
+                                         load_subject_gt, prediction_rows, split_rows)
 from headforge.render import mesh
 from headforge.render.camera import Cameras, project_points
 
@@ -41,8 +40,7 @@ def face_samples(pred, row: int) -> np.ndarray:
     if pred.is_points:
         face = pred.face_vertices & pred.head_vertices
         return np.asarray(pred.vertices[row][face], np.float64)
-    faces = pred.faces[pred.face_vertices[pred.faces].all(1)]
-    return trimesh.sample.sample_surface(trimesh.Trimesh(pred.vertices[row], faces, process=False), 5000, seed=2)[0]
+    return _face_samples(pred.vertices[row], pred.faces[pred.face_vertices[pred.faces].all(1)])
 
 
 def frame_offsets(samples: np.ndarray, gv: np.ndarray, gf: np.ndarray, face_label_faces: np.ndarray,

@@ -84,7 +84,7 @@ from scipy.spatial import cKDTree
 
 from headforge.errors import HeadforgeError
 from headforge.paths import make_folder
-from headforge.metrics.geometry import normal_angle_error, one_sided_hausdorff, points_to_mesh
+from headforge.metrics.geometry import directed_normal_consistency, normal_angle_error, one_sided_hausdorff, points_to_mesh
 
 
 @dataclass
@@ -692,10 +692,7 @@ def _points_consistency(points: np.ndarray, normals: np.ndarray, gm: trimesh.Tri
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     _, _, gfid = trimesh.proximity.closest_point(gm, np.asarray(points, np.float64))
     to_gt = np.abs((n * gm.face_normals[gfid]).sum(1)).mean()
-    seen_points, seen_normals = seen
-    _, nearest = cKDTree(points).query(seen_points)
-    to_prediction = np.abs((seen_normals * n[nearest]).sum(1)).mean()
-    return float(0.5 * (to_gt + to_prediction))
+    return float(0.5 * (to_gt + directed_normal_consistency(*seen, points, n)))
 
 
 def _stats(d: np.ndarray) -> dict:

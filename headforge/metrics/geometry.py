@@ -65,11 +65,17 @@ def chamfer(a: np.ndarray, b: np.ndarray) -> float:
     return float((da ** 2).mean() + (db ** 2).mean())
 
 
+def directed_normal_consistency(points_a, normals_a, points_b, normals_b) -> float:
+    """Mean |n_a . n_b| of each point of ``points_a`` (P, 3) and its nearest neighbour in
+    ``points_b`` (Q, 3); the normals (P, 3) / (Q, 3) need not be unit."""
+    na = normals_a / np.linalg.norm(normals_a, axis=1, keepdims=True)
+    nb = normals_b / np.linalg.norm(normals_b, axis=1, keepdims=True)
+    _, nearest = cKDTree(points_b).query(points_a)
+    return float(np.abs((na * nb[nearest]).sum(1)).mean())
+
+
 def normal_consistency(points_a, normals_a, points_b, normals_b) -> float:
     """Mean |n_a . n_b| between each point and its nearest neighbour in the other set, both
     directions averaged (Occupancy Networks / PointAvatar)."""
-    na = normals_a / np.linalg.norm(normals_a, axis=1, keepdims=True)
-    nb = normals_b / np.linalg.norm(normals_b, axis=1, keepdims=True)
-    _, ia = cKDTree(points_b).query(points_a)
-    _, ib = cKDTree(points_a).query(points_b)
-    return float(0.5 * (np.abs((na * nb[ia]).sum(1)).mean() + np.abs((nb * na[ib]).sum(1)).mean()))
+    return 0.5 * (directed_normal_consistency(points_a, normals_a, points_b, normals_b)
+                  + directed_normal_consistency(points_b, normals_b, points_a, normals_a))
