@@ -169,3 +169,20 @@ def test_batch_track_on_a_local_ray_runtime(tmp_path, monkeypatch):
     # more GPUs per item than the runtime has: refused, not queued forever
     code, output = _invoke("batch", "track", videos, "-o", out, "--ray", "--ray-cpus", 1, "--gpus-per-item", 1)
     assert code != 0 and "asks for 1 GPU(s)" in output, output
+
+
+def test_a_batch_item_caps_numba_threads_as_well_as_torch(monkeypatch):
+    """A Ray worker starts before its item: the item's CPUs must cap numba's parallel kernels too,
+    or two 1-CPU items on 2 cores each run them on both cores (measured 10-30x slower)."""
+    import numba
+    import torch
+
+    torch_before, numba_before = torch.get_num_threads(), numba.get_num_threads()
+    try:
+        batch_cmd._threads(1)
+        assert torch.get_num_threads() == 1 and numba.get_num_threads() == 1
+        batch_cmd._threads(64)  # never more than numba was started with
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    finally:
+        torch.set_num_threads(torch_before)
+        numba.set_num_threads(numba_before)
