@@ -24,3 +24,16 @@ def resolve_device(name: str = "auto") -> torch.device:
     elif device.type != "cpu":
         raise HeadforgeError(f"--device must be auto, cpu or cuda[:N], got {name!r}")
     return device
+
+
+def limit_threads(threads: int) -> None:
+    """Cap this process's torch threads and the threads of numba's parallel kernels (the point
+    splatter, the mesh rasteriser) at ``threads`` (numba: at most what it started with). For a
+    process that shares a machine with others (a batch item, a ``torchrun`` rank): numba otherwise
+    starts one thread per core in every process, and three 1-thread fits on 2 cores ran NHA's
+    texture stage 10-30x slower (docs/batch_and_distributed.md)."""
+    import numba
+
+    threads = max(1, int(threads))
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))

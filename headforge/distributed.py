@@ -63,7 +63,7 @@ def init_from_environment(device: str = "auto") -> torch.device:
     LOCAL_RANK, MASTER_ADDR/PORT) and return this rank's device: ``auto`` -> ``cuda:LOCAL_RANK``
     when CUDA is available, else the CPU; ``cuda`` -> ``cuda:LOCAL_RANK``; ``cpu``. NCCL on
     CUDA, gloo on the CPU. Without a launcher: no group, the device as asked."""
-    from headforge.devices import resolve_device
+    from headforge.devices import limit_threads, resolve_device
 
     if not launched():
         return resolve_device(device)
@@ -82,6 +82,8 @@ def init_from_environment(device: str = "auto") -> torch.device:
         target = resolve_device(device)
     if target.type == "cuda":
         torch.cuda.set_device(target)
+    else:  # torchrun sets OMP_NUM_THREADS per process; numba would still take every core in each
+        limit_threads(torch.get_num_threads())
     if not dist.is_initialized():
         dist.init_process_group("nccl" if target.type == "cuda" else "gloo", timeout=TIMEOUT,
                                 device_id=target if target.type == "cuda" else None)

@@ -172,8 +172,8 @@ def test_batch_track_on_a_local_ray_runtime(tmp_path, monkeypatch):
 
 
 def test_a_batch_item_caps_numba_threads_as_well_as_torch(monkeypatch):
-    """A Ray worker starts before its item: the item's CPUs must cap numba's parallel kernels too,
-    or two 1-CPU items on 2 cores each run them on both cores (measured 10-30x slower)."""
+    """A Ray worker starts before its item: the item's CPUs must cap numba's parallel kernels too
+    (``devices.limit_threads``), or two 1-CPU items on 2 cores each run them on both cores."""
     import numba
     import torch
 

@@ -206,6 +206,13 @@ def _helpers_worker(rank: int, init_file: str, out: Path) -> None:
         result["terms"] = {k: float(v) for k, v in distributed.mean_terms({"l": torch.tensor(float(rank))}).items()}
         result["owned"] = distributed.owned(5)
         result["object"] = distributed.broadcast_object({"from": rank})
+        # a torchrun rank on the CPU: numba's kernels take the process's torch threads, not every core
+        import numba
+
+        os.environ |= {"WORLD_SIZE": str(WORLD), "LOCAL_RANK": str(rank)}
+        torch.set_num_threads(1)
+        result["device"] = str(distributed.init_from_environment("cpu"))
+        result["numba_threads"] = numba.get_num_threads()
         torch.save(result, out / f"{rank}.pt")
     finally:
         dist.destroy_process_group()
@@ -231,6 +238,7 @@ def test_the_distributed_helpers(tmp_path):
         assert r["merged"][1][:2] == [0.0, 10.0] and r["merged"][1][3] == 10.0
         assert r["terms"] == {"l": 0.5} and r["object"] == {"from": 0}
     assert r0["owned"] == [0, 2, 4] and r1["owned"] == [1, 3]
+    assert r0["device"] == r1["device"] == "cpu" and r0["numba_threads"] == r1["numba_threads"] == 1
     # without a process group: one rank, nothing to do
     assert not distributed.active() and distributed.is_main() and distributed.world_size() == 1
     rows = torch.arange(3)

@@ -47,15 +47,10 @@ def _logger(output: Path, key: str):
 
 
 def _threads(cpus: float) -> None:
-    """Cap this worker's torch and numba threads at its CPUs. A Ray worker is started before the
-    item is known, so numba's parallel kernels (the splatter, the mesh rasteriser) would use every
-    core: two 1-CPU items on 2 cores then ran NHA's texture stage 10-30x slower (docs/batch_and_distributed.md)."""
-    import numba
-    import torch
+    """A Ray worker starts before its item is known: cap its threads at the item's CPUs."""
+    from headforge.devices import limit_threads
 
-    n = max(1, int(cpus))
-    torch.set_num_threads(n)
-    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    limit_threads(cpus)
 
 
 def track_item(key: str, payload: dict, workdir: Path) -> dict:
