@@ -319,15 +319,17 @@ def test_render_avatar_takes_the_driving_mode(rendered, tmp_path, tiny_head):
     assert res.exit_code != 0 and "driving-mode" in str(res.exception) + res.output
 
 
-@pytest.mark.parametrize("per_level", [True, False])
-def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_level):
+@pytest.mark.parametrize("per_level, factor", [(True, 4.0), (True, 2.0), (False, 4.0)])
+def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_level, factor):
     """A smooth offset field costs about the same on the 4-way subdivided template as on the
-    tracked one with ``laplacian_per_level``; without it the umbrella Laplacian, which shrinks with
-    the squared edge length, charges the subdivided template 10-16 times less (a tenth here)."""
+    tracked one with ``laplacian_per_level`` (factor 4); without it the umbrella Laplacian, which
+    shrinks with the squared edge length, charges the subdivided template 10-16 times less (a
+    tenth here); a factor of 2 per level charges it a quarter of the factor 4's cost."""
     costs = []
     for subdivide in (False, True):
         config = NHAConfig.quick()
         config.laplacian_face_cut, config.laplacian_per_level = False, per_level
+        config.laplacian_level_factor = factor
         template = build_template(tiny_head, subdivide, False)
         avatar = NeuralHeadAvatar(template, _tracking(template), config)
         avatar.laplacian_weight.fill_(1.0)
@@ -335,7 +337,9 @@ def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_le
         offsets = torch.stack([10 * v[:, 0] ** 2, 5 * v[:, 1] * v[:, 2], torch.zeros(len(v))], -1)[None]  # mm
         costs.append(float(avatar.laplacian_term(offsets)))
     ratio = costs[1] / costs[0]
-    if per_level:
+    if not per_level:
+        assert 1 / 32 < ratio < 1 / 8
+    elif factor == 4.0:
         assert 0.5 < ratio < 2.0
     else:
-        assert 1 / 32 < ratio < 1 / 8
+        assert 1 / 8 < ratio < 1 / 2

@@ -51,7 +51,8 @@ class NHAConfig(EngineConfig):
     laplacian_top_back_factor: float = 1.0  # times laplacian_scalp on the scalp's unseen top-back; 0.2 costs bob 2 deg (docs/nha_table1.md)
     laplacian_face_cut: bool = True  # the face's Laplacian ignores scalp neighbours: 17.48 -> 16.29 deg (docs/nha_table1.md)
     laplacian_scalp_shell: bool = False  # Laplacian on the hair's thickness, not its offset; worse on curly and bob (docs/nha_table1.md)
-    laplacian_per_level: bool = True  # the umbrella Laplacian x4 per subdivision level: the subdivided bob tore without (docs/nha_table1.md)
+    laplacian_per_level: bool = True  # the umbrella Laplacian's input x laplacian_level_factor per subdivision level: the subdivided bob tore without (docs/nha_table1.md)
+    laplacian_level_factor: float = 4.0  # 4: a smooth field costs what it costs on the tracked template (edges halve, squared norm)
     shading: bool = False  # beyond NHA: albedo x learned SH; costs talking_bun 1.07 dB at w_rgb 5, the hair does not flatten (docs/nha_table1.md)
     w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2

@@ -212,9 +212,10 @@ class NeuralHeadAvatar(Avatar):
         self.laplacian_l1 = config.laplacian_norm == "l1"
         # A smooth offset field's umbrella Laplacian shrinks with the squared edge length: each 4-way
         # subdivision halves the edges, so without this factor the subdivided template's prior is
-        # 16 times weaker (squared norm) than the one the weights were chosen on (a Python float).
+        # 16 times weaker (squared norm) than the one the weights were chosen on; a factor of 4 per
+        # level restores it, one between 1 and 4 leaves it weaker (a Python float).
         levels = int(template.meta.get("subdivided", 0))
-        self.laplacian_scale = 4.0 ** levels if config.laplacian_per_level else 1.0
+        self.laplacian_scale = config.laplacian_level_factor ** levels if config.laplacian_per_level else 1.0
         # Laplace-Beltrami (cotangent) weights of the template's 1-ring, fixed (App. A.3's lambda*)
         self.cotangent = config.laplacian_operator == "cotangent"
         cot_edges, cot_weights = (cotangent_weights(template.v_template, template.faces) if self.cotangent
