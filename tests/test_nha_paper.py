@@ -343,3 +343,28 @@ def test_a_subdivided_template_keeps_the_quick_laplacian_prior(tiny_head, per_le
         assert 0.5 < ratio < 2.0
     else:
         assert 1 / 8 < ratio < 1 / 2
+
+
+def test_the_inner_surfaces_offsets_are_charged_and_the_outer_ones_are_not(open_head_data):
+    """Eyeballs, eye cavities and mouth interior get ``w_offset_inner``'s penalty (they drifted
+    through the face: docs/nha_table1.md); the face, scalp and ears do not, whatever they move."""
+    from headforge.avatars.nha.method import offset_terms
+
+    config = NHAConfig.quick()
+    template = build_template(open_head_data, False, False)
+    avatar = NeuralHeadAvatar(template, _tracking(template), config)
+    head = avatar.head
+    inner = torch.zeros(head.num_vertices, dtype=torch.bool)
+    for name in ("eyeballs", "eye_cavities", "mouth_interior"):
+        inner[head.region(name)] = True
+    assert inner.sum() > 100 and torch.equal(avatar.inner_vertices.bool(), inner)
+
+    forward = torch.zeros(1, head.num_vertices, 3)
+    forward[0, head.region("eyeballs"), 2] = 10.0  # the eyeballs 10 mm forward
+    charged = offset_terms(avatar, forward, config)["offset_inner"]
+    assert float(charged) == pytest.approx(config.w_offset_inner * 100 * len(head.region("eyeballs")) / head.num_vertices)
+    outer = torch.zeros(1, head.num_vertices, 3)
+    for name in ("face", "scalp", "ears"):
+        outer[0, head.region(name), 2] = 10.0
+    outer[0, inner] = 0.0
+    assert float(offset_terms(avatar, outer, config)["offset_inner"]) == 0.0

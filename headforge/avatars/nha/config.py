@@ -56,6 +56,7 @@ class NHAConfig(EngineConfig):
     shading: bool = False  # beyond NHA: albedo x learned SH; costs talking_bun 1.07 dB at w_rgb 5, the hair does not flatten (docs/nha_table1.md)
     w_albedo_tv: float = 1.0  # L1 of the albedo's differences between neighbouring pixels (with shading only)
     w_offset_face: float = 0.01  # squared face offsets in mm^2
+    w_offset_inner: float = 1.0  # squared offsets in mm^2 of the surfaces inside the head (eyeballs, eye cavities, mouth interior): they drifted through the face (docs/nha_table1.md)
     w_surface: float = 1.0
     w_edge: float = 10.0
     w_prior: float = 1e-3

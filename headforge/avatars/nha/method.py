@@ -113,6 +113,15 @@ def contour_term(avatar, vertices: torch.Tensor, gt_mask: torch.Tensor, area: to
     return torch.stack(terms).mean() / res
 
 
+def offset_terms(avatar, mm: torch.Tensor, config: NHAConfig) -> dict[str, torch.Tensor]:
+    """The squared-offset penalties on (B, V, 3) offsets ``mm`` in millimetres: the face's
+    (``w_offset_face``) and the inner surfaces' (``w_offset_inner``: eyeballs, eye cavities, mouth
+    interior, which no silhouette or normal term reaches), each a mean over all vertices."""
+    squared = (mm ** 2).sum(-1)
+    return {"offset_face": config.w_offset_face * (squared * avatar.face_vertices).mean(),
+            "offset_inner": config.w_offset_inner * (squared * avatar.inner_vertices).mean()}
+
+
 def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
            params: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """Weighted energy terms of one batch. ``stage``: geometry, texture or joint (the training
@@ -176,7 +185,7 @@ def losses(avatar, batch: dict, K: torch.Tensor, config: NHAConfig, stage: str,
     if stage in ("geometry", "joint"):
         mm = 1000 * r.offsets  # regularisers in millimetres
         out["laplacian"] = config.w_laplacian * avatar.laplacian_term(mm, stage)
-        out["offset_face"] = config.w_offset_face * ((mm ** 2).sum(-1) * avatar.face_vertices).mean()
+        out |= offset_terms(avatar, mm, config)
         out["edge"] = config.w_edge * avatar.edge_term(r.offsets + avatar.head.v_template)
         if B > 1:  # surface consistency between the frames of the batch (random pairs)
             out["surface"] = config.w_surface * (r.offsets[0] - r.offsets[1]).abs().mean()

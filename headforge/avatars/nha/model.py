@@ -261,6 +261,9 @@ class NeuralHeadAvatar(Avatar):
         for name in ("eyeballs", "mouth_interior", "eye_cavities"):
             outline[region(name)] = False
         self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0], persistent=False)  # derived
+        # The surfaces inside the head, which no silhouette or normal term reaches (w_offset_inner):
+        # (V,) 1.0 on them. Left to the photometric term, they drifted through the face.
+        self.register_buffer("inner_vertices", (~outline).float(), persistent=False)  # derived
         # soft edge of the rendered matte (headforge.render.matte): sigma in px at the training
         # resolution, fitted after training (trainer.fit_matte); 0 = the antialiased edge
         self.register_buffer("matte_sigma", torch.zeros(()))
