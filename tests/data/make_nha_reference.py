@@ -13,7 +13,8 @@ alignment, in-training validation and test-time fitting, in call order) at full 
 ``nha_reference_losses.json``. History: recorded at 64909a8 by the pre-platform trainer (the
 platform move reproduced it to 1e-6); re-recorded after NHA's energies took the protocol's head
 region (``headforge.avatars.nha.method.energy_area``), which changes the silhouette, outline and
-photometric terms by design.
+photometric terms by design; re-recorded after the inner surfaces' offset penalty
+(``w_offset_inner``), a new term by design.
 """
 
 from __future__ import annotations
