@@ -355,7 +355,7 @@ def test_the_inner_surfaces_offsets_are_charged_and_the_outer_ones_are_not(open_
     avatar = NeuralHeadAvatar(template, _tracking(template), config)
     head = avatar.head
     inner = torch.zeros(head.num_vertices, dtype=torch.bool)
-    for name in ("eyeballs", "eye_cavities", "mouth_interior"):
+    for name in ("eyeballs", "eye_cavities", "mouth_interior"):  # open-head's inner regions, named here
         inner[head.region(name)] = True
     assert inner.sum() > 100 and torch.equal(avatar.inner_vertices.bool(), inner)
 

@@ -37,6 +37,7 @@ import torch
 from headforge.craft import register as R
 from headforge.craft.observe import Observation
 from headforge.errors import HeadforgeError
+from headforge.head.model import INNER_REGIONS
 
 
 @dataclass
@@ -152,7 +153,7 @@ def fit_head_to_cloud(template: R.Template, obs: Observation, config: CloudFitCo
     camera = obs.camera_centre
     face_ids = torch.as_tensor(template.data.regions["face"])
     skip = np.zeros(model.num_vertices, bool)  # the inner parts a sensor never sees
-    for name in ("eyeballs", "mouth_interior", "eye_cavities", "lower_neck"):
+    for name in (*INNER_REGIONS, "lower_neck"):
         if name in template.data.regions:
             skip[template.data.regions[name]] = True
     outer = torch.as_tensor(~skip)

@@ -34,7 +34,7 @@ import torch
 
 from headforge.craft.scans import LABELS, Scan
 from headforge.errors import HeadforgeError
-from headforge.head.model import HeadModel, HeadModelData
+from headforge.head.model import INNER_REGIONS, HeadModel, HeadModelData
 from headforge.head.topology import (
     ConsistentSubdivision,
     directed_edges,
@@ -349,7 +349,7 @@ def free_mask(template: Template, names: tuple[str, ...]) -> torch.Tensor:
     m = np.zeros(template.n_vertices, bool)
     for n in names:
         m[template.regions[n]] = True
-    frozen = ("neck", "eyeballs", "ears", "mouth_interior", "eye_cavities", "lower_neck")
+    frozen = ("neck", "ears", "lower_neck", *INNER_REGIONS)
     for n in frozen:
         if n in template.regions and n not in names:
             m[template.regions[n]] = False

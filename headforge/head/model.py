@@ -24,6 +24,9 @@ from headforge.head import lbs as lbs_fn
 
 JOINT_NAMES = ("root", "neck", "jaw", "eye_left", "eye_right")
 POSE_ARGS = ("root_pose", "neck_pose", "jaw_pose", "eye_left_pose", "eye_right_pose")
+# Regions of surfaces inside the head, never on its outer surface (open-head has all three; a
+# model may lack some: callers check ``regions``)
+INNER_REGIONS = ("eyeballs", "eye_cavities", "mouth_interior")
 
 # Soft joint limits (half ranges, radians) used when ``joint_limits=True`` (NHA App. A.1):
 # physiologically plausible ranges per axis (x: pitch, y: yaw, z: roll).

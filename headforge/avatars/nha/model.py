@@ -19,7 +19,7 @@ from headforge.avatars.nha.networks import GeometryNet, TextureNet
 from headforge.errors import HeadforgeError
 from headforge.head.landmarks import FACE_OVAL_LOOP
 from headforge.head.lbs import pose_to_rotmats, surface_points
-from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
+from headforge.head.model import INNER_REGIONS, POSE_ARGS, HeadModel, HeadModelData
 from headforge.head.pose import FRAME_KEYS, head_to_camera
 from headforge.head.topology import (directed_edges, laplacian_smooth, open_neck_ring, remove_region, subdivide_head,
                                      vertex_normals)
@@ -117,7 +117,7 @@ def paper_regions(data: HeadModelData) -> HeadModelData:
     lmk = surface_points(v[None], torch.as_tensor(np.asarray(data.faces)), torch.as_tensor(data.landmark_faces),
                          torch.as_tensor(data.landmark_bary))[0].numpy()
     inner = np.zeros(len(v), bool)
-    for name in ("eyeballs", "eye_cavities", "mouth_interior"):
+    for name in INNER_REGIONS:
         inner[data.regions.get(name, [])] = True
     eyes = [_inside_loop(data, lmk, loop, hull=True) for loop in EYE_REGION_LOOPS]
     masks = {"eye_region": eyes[0] | eyes[1], "forehead": _inside_loop(data, lmk, FOREHEAD_LOOP),
@@ -258,7 +258,7 @@ class NeuralHeadAvatar(Avatar):
         oval = face_oval_vertices(template) if self.has_lips else np.zeros(V, bool)
         self.register_buffer("face_oval", torch.as_tensor(oval, dtype=torch.float32)[:, None], persistent=False)  # derived
         outline = torch.ones(V, dtype=torch.bool)  # vertices that can form the outer silhouette
-        for name in ("eyeballs", "mouth_interior", "eye_cavities"):
+        for name in INNER_REGIONS:
             outline[region(name)] = False
         self.register_buffer("outline_vertices", torch.nonzero(outline)[:, 0], persistent=False)  # derived
         # The surfaces inside the head, which no silhouette or normal term reaches (w_offset_inner):
