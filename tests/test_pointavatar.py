@@ -530,3 +530,43 @@ def test_surfels_draw_the_points_as_their_tangent_discs_and_the_geometry_says_so
     assert surfels.points.grad is not None and surfels.points.grad.abs().sum() > 0
     with pytest.raises(HeadforgeError, match="surfel_min_cos"):
         method.build(assets, tiny_config(surfel_min_cos=1.5))
+
+
+def test_the_mouth_albedo_changes_with_the_jaw_near_the_mouth_only_and_trains(rendered):
+    """mouth_albedo_width > 0 (deviation 19): at its zero start the albedo is the canonical one;
+    once its network says something, the points near the canonical mouth change colour with the
+    frame's jaw while the points far from it keep their albedo; the RGB energy trains it."""
+    from headforge.avatars import registry
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+
+    method = registry.get("pointavatar")
+    assets = RunAssets.from_dataset(rendered)
+    config = tiny_config(mouth_albedo_width=16, mouth_albedo_layers=2, mouth_albedo_radius=0.02, init_cloud="head",
+                         init_points=2000)
+    avatar = method.build(assets, config)
+    c = avatar.canonical(False)
+    params = avatar.frame_params(torch.tensor([0, 1]))
+    assert torch.equal(avatar.frame_albedo(c, params, 2), c.albedo.expand(2, -1, -1))  # zero start
+    train = FrameData(rendered, "train", config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    terms = method.losses(avatar, train.batch(torch.arange(2)), train.K, config, "train")
+    terms["rgb"].backward()
+    assert avatar.mouth_albedo_net.layers[-1].weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        avatar.mouth_albedo_net.layers[-1].weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(0))
+        params["jaw_pose"][1] = params["jaw_pose"][0] + torch.tensor([0.3, 0.0, 0.0])
+        albedo = avatar.frame_albedo(c, params, 2)
+        gate = avatar.mouth_gate(c)
+    near, far = gate > 0.5, gate < 1e-3
+    assert near.sum() > 10 and far.sum() > 100
+    assert torch.equal(albedo[:, far], c.albedo[far].expand(2, -1, -1))  # far from the mouth: untouched
+    assert (albedo[0, near] - albedo[1, near]).abs().max() > 1e-3  # near it: the jaw changes the colour
+    x_o = (c.q * 0.15 + avatar.centre + c.O)[near]
+    ring = avatar.canonical_mouth
+    assert (x_o - ring.mean(0)).norm(dim=-1).max() < (ring - ring.mean(0)).norm(dim=-1).max() + 0.03
+
+
+def test_the_mouth_albedo_refuses_a_radius_that_is_not_positive():
+    with pytest.raises(HeadforgeError, match="mouth_albedo"):
+        tiny_config(mouth_albedo_radius=0).validate()

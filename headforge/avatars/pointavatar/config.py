@@ -49,6 +49,12 @@ class PointAvatarConfig(EngineConfig):
     albedo_width: int = 0
     albedo_layers: int = 3
     albedo_frequencies: int = 8
+    # beyond the paper (deviation 19, docs/pointavatar.md; 0: off, the paper): an MLP of the frame's
+    # expression and jaw adding a change to the albedo of the points near the canonical mouth (within
+    # about ``mouth_albedo_radius`` m of the inner lips), so the mouth's opening can show its inside
+    mouth_albedo_width: int = 0
+    mouth_albedo_layers: int = 3
+    mouth_albedo_radius: float = 0.015
     # the method's switches (the paper's ablations)
     jacobian_normals: bool = True  # False: normals by the blended skinning rotation only (Fig. 6, column 3)
     canonical_offset: bool = True  # False: points learnt directly in the head model's canonical space (Fig. 9)
@@ -143,5 +149,8 @@ class PointAvatarConfig(EngineConfig):
         if self.flame_halvings < 0 or self.flame_halving_every <= 0:
             raise HeadforgeError(f"flame_halvings must be >= 0 and flame_halving_every > 0, got "
                                  f"{self.flame_halvings}, {self.flame_halving_every}")
+        if self.mouth_albedo_width < 0 or self.mouth_albedo_radius <= 0:
+            raise HeadforgeError(f"mouth_albedo_width must be >= 0 and mouth_albedo_radius > 0, got "
+                                 f"{self.mouth_albedo_width}, {self.mouth_albedo_radius}")
         if self.upsample_spread < 0 or self.mouth_seed < 0:
             raise HeadforgeError(f"upsample_spread and mouth_seed must be >= 0, got {self.upsample_spread}, {self.mouth_seed}")

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from headforge.avatars.base import Avatar, AvatarRender, Geometry
-from headforge.avatars.pointavatar.networks import AlbedoNet, CanonicalNet, Deformer, ShadingNet
+from headforge.avatars.pointavatar.networks import AlbedoNet, CanonicalNet, Deformer, MouthAlbedoNet, ShadingNet
 from headforge.errors import HeadforgeError
 from headforge.head.landmarks import INNER_LIP_LOOP, N_MEDIAPIPE
 from headforge.head.model import POSE_ARGS, HeadModel, HeadModelData
@@ -124,6 +124,14 @@ class PointAvatarModel(Avatar):
                                  offset=config.canonical_offset)
         self.albedo_net = (AlbedoNet(config.albedo_width, config.albedo_layers, config.albedo_frequencies)
                            if config.albedo_width > 0 else None)
+        self.mouth_albedo_net = None
+        if config.mouth_albedo_width > 0:
+            if len(self.canonical_mouth) == 0:
+                raise HeadforgeError("mouth_albedo_width > 0 needs a head model with MediaPipe's landmarks "
+                                     "(the inner lips place the mouth); this one has none")
+            self.mouth_albedo_net = MouthAlbedoNet(config.mouth_albedo_width, config.mouth_albedo_layers,
+                                                   config.albedo_frequencies, self.head.n_expr + 3)
+        self.mouth_albedo_radius = float(config.mouth_albedo_radius)
         self.shading_net = ShadingNet(config.shading_width, config.shading_layers) if config.shading != "none" else None
         self.colour_net = ShadingNet(config.shading_width, config.shading_layers, in_dim=6) if config.shading == "none" else None
         gen = torch.Generator().manual_seed(config.seed)
@@ -268,13 +276,37 @@ class PointAvatarModel(Avatar):
         normals (B, N, 3)."""
         return self.shading_net(normals) * 2
 
-    def colours(self, c: Canonical, normals: torch.Tensor, light: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def mouth_gate(self, c: Canonical) -> torch.Tensor:
+        """(N,) in (0, 1]: exp(-(d / mouth_albedo_radius)^2), d the distance (m) of each point's x_o
+        (the canonical, jaw-open pose) to the nearest of the canonical inner-lip ring and its
+        centroid: 1 on the lips and in the opening, 0.02 two radii away."""
+        x_o = (c.q * SCALE + self.centre + c.O).detach()
+        ring = torch.cat([self.canonical_mouth, self.canonical_mouth.mean(0, keepdim=True)]).to(x_o)
+        d = torch.cdist(x_o, ring).min(1).values
+        return torch.exp(-(d / self.mouth_albedo_radius) ** 2)
+
+    def frame_albedo(self, c: Canonical, params: dict[str, torch.Tensor] | None, B: int) -> torch.Tensor:
+        """(B, N, 3) albedo in [0, 1] at frames ``params``: the canonical albedo, plus near the mouth
+        the mouth-albedo network's change at the frame's expression and jaw (deviation 19) where
+        that network exists and ``params`` are given."""
+        albedo = c.albedo.expand(B, -1, -1)
+        if self.mouth_albedo_net is None or params is None:
+            return albedo
+        gate = self.mouth_gate(c)
+        rows = torch.nonzero(gate > 1e-3)[:, 0]  # the network runs on the points near the mouth only
+        cond = torch.cat([params["expression"] - self.canonical_expression, params["jaw_pose"]], -1).to(albedo)
+        delta = self.mouth_albedo_net(c.q[rows].detach(), cond) * gate[rows, None]
+        return (albedo.clone().index_add(1, rows, delta)).clamp(0, 1)
+
+    def colours(self, c: Canonical, normals: torch.Tensor, light: dict | None = None,
+                params: dict[str, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(colour, shading), each (B, N, 3) in [0, 1], at deformed normals (B, N, 3). ``light``:
         None (the learned shading), {"rotate": (3, 3)} (the learned shading of rotated normals: a
         light-direction change), {"direction": (3,)} (Lambert) or {"sh": (9, 3)} (2nd-order SH),
         the latter two with the learned albedo under the clip's mean light (a uniform light of 1
-        keeps the clip's brightness); directions in the posed head frame."""
-        albedo = c.albedo.expand(normals.shape[0], -1, -1)
+        keeps the clip's brightness); directions in the posed head frame. ``params``: the frames'
+        parameters, for the albedo's change near the mouth (:meth:`frame_albedo`)."""
+        albedo = self.frame_albedo(c, params, normals.shape[0])
         if self.colour_net is not None:  # entangled colour (the ablation): one MLP of albedo features and normal
             colour = self.colour_net(torch.cat([normals, albedo], -1))
             return colour, torch.ones_like(colour)
@@ -315,12 +347,12 @@ class PointAvatarModel(Avatar):
                light: dict | None = None, layers: bool = False, hole_filling: bool | None = None,
                training: bool = False) -> PointRender:
         c, pts, n_cam, n_d = self.posed(params, training)
-        colour, shading = self.colours(c, n_d, light)
+        colour, shading = self.colours(c, n_d, light, params)
         features = [colour]
         if normals:
             features.append(n_cam)
         if layers:
-            features += [c.albedo.expand_as(colour), shading.clamp(0, 2) / 2]
+            features += [self.frame_albedo(c, params, colour.shape[0]), shading.clamp(0, 2) / 2]
         depth = cameras.world_to_camera(pts)[..., 2]
         radius_px = cameras.K[:, 0, 0, None] * self.radius / depth.clamp(min=1e-3)
         img = self.splat(cameras, pts, torch.cat(features, -1), radius_px, n_cam)

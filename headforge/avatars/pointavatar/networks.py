@@ -160,6 +160,32 @@ class AlbedoNet(nn.Module):
         return torch.sigmoid(10 * x)
 
 
+class MouthAlbedoNet(nn.Module):
+    """Beyond the paper (headforge's deviation 19, docs/pointavatar.md): a frame-dependent change
+    of the albedo near the mouth. (q (N, 3), cond (B, n_cond)) -> delta (B, N, 3) in (-1, 1),
+    added to the albedo before shading: a point in the canonical mouth's opening is lip when the
+    mouth closes over it and tongue, teeth or a dark cavity when it opens, which one static
+    albedo per point cannot be. ``cond`` is the frame's expression relative to the canonical one
+    and its jaw rotation. The last layer starts at zero: no change until the images ask for one."""
+
+    def __init__(self, width: int, layers: int, frequencies: int, n_cond: int, norm: bool = True):
+        super().__init__()
+        self.frequencies = frequencies
+        dims = [3 + 6 * frequencies + n_cond] + [width] * layers + [3]
+        self.layers = nn.ModuleList(_linear(dims[i], dims[i + 1], norm and i < layers) for i in range(len(dims) - 1))
+        nn.init.zeros_(self.layers[-1].weight)
+        nn.init.zeros_(self.layers[-1].bias)
+
+    def forward(self, q: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        pe = positional_encoding(q, self.frequencies)
+        x = torch.cat([pe.expand(cond.shape[0], -1, -1), cond[:, None].expand(-1, q.shape[0], -1)], -1)
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < len(self.layers) - 1:
+                x = torch.relu(x)
+        return torch.tanh(x)
+
+
 class ShadingNet(nn.Module):
     """MLP_s (Eq. 8): a unit normal n (..., 3) in the deformed (posed head) frame -> shading
     (..., 3) in (0, 1); the colour is albedo x shading x 2 (the authors' scale, so a mid shading
