@@ -49,9 +49,9 @@ class PointAvatarConfig(EngineConfig):
     albedo_width: int = 0
     albedo_layers: int = 3
     albedo_frequencies: int = 8
-    # beyond the paper (deviation 19, docs/pointavatar.md; 0: off, the paper): an MLP of the frame's
-    # expression and jaw adding a change to the albedo of the points near the canonical mouth (within
-    # about ``mouth_albedo_radius`` m of the inner lips), so the mouth's opening can show its inside
+    # beyond the paper, off in both presets: an MLP of the frame's expression and jaw adding a change
+    # to the albedo of the points near the canonical mouth (within about ``mouth_albedo_radius`` m of
+    # the inner lips); on talking_bun within one seed's spread (docs/pointavatar.md, deviation 19)
     mouth_albedo_width: int = 0
     mouth_albedo_layers: int = 3
     mouth_albedo_radius: float = 0.015
