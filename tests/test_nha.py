@@ -670,11 +670,12 @@ def test_learning_rates_decay_along_a_half_cosine_at_the_end():
     from headforge.avatars.engine import lr_factor
     from headforge.avatars.nha.config import NHAConfig
 
-    config = NHAConfig.quick()  # 2000 iterations, decay from 1400
+    config = NHAConfig.quick()  # 4000 iterations, decay from 2800
+    assert config.total_iters == 4000 and config.lr_decay_start == 0.7
     factors = [lr_factor(it, config) for it in range(config.total_iters + 1)]
-    assert factors[:1401] == [1.0] * 1401
+    assert factors[:2801] == [1.0] * 2801
     assert all(a >= b for a, b in zip(factors, factors[1:])) and factors[-1] == pytest.approx(config.lr_final)
-    assert factors[1700] == pytest.approx((1 + config.lr_final) / 2)  # half way down
+    assert factors[3400] == pytest.approx((1 + config.lr_final) / 2)  # half way down
     config.override("lr_final=1.0")
     assert {lr_factor(it, config) for it in range(config.total_iters + 1)} == {1.0}
 

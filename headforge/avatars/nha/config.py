@@ -83,7 +83,9 @@ class NHAConfig(EngineConfig):
     def quick(cls) -> "NHAConfig":
         return cls(subdivide=False, geo_layers=4, geo_width=96, tex_grid=128, tex_channels=16, tex_layers=4,
                    tex_width=96, tex_mouth_grid=32, normal_channels=(16, 16, 16), tex_head_width=48,
-                   geometry_iters=400, texture_iters=400, joint_iters=1200, val_every=250,
+                   # twice the 400 / 400 / 1200 of before 2026-12-07: Table 1 12.16 -> 11.34 deg, talking_bun
+                   # 24.12 -> 24.16 dB (docs/nha_table1.md, "Table 1 at twice the schedule")
+                   geometry_iters=800, texture_iters=800, joint_iters=2400, val_every=250,
                    tto_photometric_steps=0)
 
     @classmethod
