@@ -299,14 +299,14 @@ class PointAvatarModel(Avatar):
         return (albedo.clone().index_add(1, rows, delta)).clamp(0, 1)
 
     def colours(self, c: Canonical, normals: torch.Tensor, light: dict | None = None,
-                params: dict[str, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                albedo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(colour, shading), each (B, N, 3) in [0, 1], at deformed normals (B, N, 3). ``light``:
         None (the learned shading), {"rotate": (3, 3)} (the learned shading of rotated normals: a
         light-direction change), {"direction": (3,)} (Lambert) or {"sh": (9, 3)} (2nd-order SH),
         the latter two with the learned albedo under the clip's mean light (a uniform light of 1
-        keeps the clip's brightness); directions in the posed head frame. ``params``: the frames'
-        parameters, for the albedo's change near the mouth (:meth:`frame_albedo`)."""
-        albedo = self.frame_albedo(c, params, normals.shape[0])
+        keeps the clip's brightness); directions in the posed head frame. ``albedo``: (B, N, 3) the
+        frames' albedo (:meth:`frame_albedo`); None: the canonical one."""
+        albedo = c.albedo.expand(normals.shape[0], -1, -1) if albedo is None else albedo
         if self.colour_net is not None:  # entangled colour (the ablation): one MLP of albedo features and normal
             colour = self.colour_net(torch.cat([normals, albedo], -1))
             return colour, torch.ones_like(colour)
@@ -347,12 +347,13 @@ class PointAvatarModel(Avatar):
                light: dict | None = None, layers: bool = False, hole_filling: bool | None = None,
                training: bool = False) -> PointRender:
         c, pts, n_cam, n_d = self.posed(params, training)
-        colour, shading = self.colours(c, n_d, light, params)
+        albedo = self.frame_albedo(c, params, n_d.shape[0])
+        colour, shading = self.colours(c, n_d, light, albedo)
         features = [colour]
         if normals:
             features.append(n_cam)
         if layers:
-            features += [self.frame_albedo(c, params, colour.shape[0]), shading.clamp(0, 2) / 2]
+            features += [albedo, shading.clamp(0, 2) / 2]
         depth = cameras.world_to_camera(pts)[..., 2]
         radius_px = cameras.K[:, 0, 0, None] * self.radius / depth.clamp(min=1e-3)
         img = self.splat(cameras, pts, torch.cat(features, -1), radius_px, n_cam)
