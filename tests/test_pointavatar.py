@@ -570,3 +570,70 @@ def test_the_mouth_albedo_changes_with_the_jaw_near_the_mouth_only_and_trains(re
 def test_the_mouth_albedo_refuses_a_radius_that_is_not_positive():
     with pytest.raises(HeadforgeError, match="mouth_albedo"):
         tiny_config(mouth_albedo_radius=0).validate()
+
+
+def test_the_avatars_own_landmarks_move_as_its_points_and_train_the_deformer(rendered):
+    """``landmarks_through=avatar``: the landmarks are the canonical head model's, deformed as cloud
+    points at the same canonical place are (offset, blendshapes, skinning); their terms reach the
+    deformer and the frames in training, no bias is kept, and the regulariser holds the deformer at
+    them too."""
+    from headforge.avatars.frames import FrameData
+    from headforge.avatars.pointavatar.method import head_model_term, landmark_terms, losses
+    from headforge.avatars.pointavatar.model import SCALE
+    from headforge.avatars.run import RunAssets
+    from headforge.metrics.protocol import TrackedHead
+    from headforge.render.camera import project_points
+
+    avatar = deformed_avatar(rendered, w_landmarks=1.0, w_eyelids=1.0, landmarks_through="avatar")
+    params = avatar.frame_params(torch.tensor([0, 1]))
+    with torch.no_grad():
+        own = avatar.own_landmarks(params)
+        assert own.shape == (2, len(avatar.canonical_landmarks), 3)
+        # their points' x_o are the head model's canonical landmarks (the offset inverted) ...
+        c = avatar.landmark_canonical(iterations=30)
+        assert avatar.landmark_residual < 1e-6
+        assert torch.allclose(c.q * SCALE + avatar.centre + c.O, avatar.canonical_landmarks, atol=1e-12)
+        assert torch.allclose(c.O, avatar.deformer(c.q)[2], atol=1e-6)
+        assert c.O.norm(dim=-1).mean() > 1e-3  # ... which is not where x_c = x_o would put them
+        # and cloud points placed there land where the landmarks do
+        avatar.points = torch.nn.Parameter(c.q.clone())
+        _, pts, _, _ = avatar.posed(params)
+        assert torch.allclose(avatar.own_landmarks(params), pts, atol=1e-9)
+        # and not where the bare head model puts its landmarks (the random deformer moves them)
+        assert (own - avatar.landmarks(params)).norm(dim=-1).mean() > 1e-3
+
+    config = tiny_config(w_landmarks=1.0, w_eyelids=1.0, landmarks_through="avatar")
+    assets = RunAssets.from_dataset(rendered)
+    from headforge.avatars import registry
+
+    avatar = registry.get("pointavatar").build(assets, config)
+    data = FrameData(rendered, "train", config.resolution, TrackedHead(assets.head_data(), assets.tracking["shape"]))
+    batch = data.batch(torch.arange(2))
+    terms = losses(avatar, batch, data.K, config, "train")
+    assert {"landmarks", "eyelids"} <= set(terms)
+    avatar.zero_grad()
+    terms["landmarks"].backward()
+    assert avatar.frames["translation"].grad.abs().sum() > 0
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.deformer.parameters())
+    # not through the offset: the landmarks' x_o are the head model's whatever it is
+    assert avatar.deformer.offset.weight.grad is None or avatar.deformer.offset.weight.grad.abs().sum() == 0
+    # detections where the avatar's landmarks project: the term vanishes (no bias is subtracted)
+    with torch.no_grad():
+        avatar.landmark_bias.fill_(5.0)
+        p0 = avatar.frame_params(batch["index"])
+        detected = project_points(avatar.own_landmarks(p0), data.K)
+        assert float(sum(landmark_terms(avatar, p0, detected, data.K, config).values())) < 1e-5
+        # the face oval (MediaPipe's 2D outline) left out on request: moving it changes nothing then
+        from headforge.head.landmarks import FACE_OVAL
+
+        moved = detected.clone()
+        moved[:, FACE_OVAL] += 7.0
+        assert float(landmark_terms(avatar, p0, moved, data.K, config)["landmarks"]) > 0.01
+        no_oval = tiny_config(w_landmarks=1.0, w_eyelids=1.0, landmarks_through="avatar", landmarks_oval=False)
+        assert float(sum(landmark_terms(avatar, p0, moved, data.K, no_oval).values())) < 1e-5
+    # the regulariser over the points and the landmarks: at the landmarks' own vertices' targets
+    c = avatar.canonical(False)
+    with_lmk = head_model_term(avatar, c, config, avatar.landmark_canonical())
+    assert not torch.isclose(with_lmk, head_model_term(avatar, c, config))
+    with pytest.raises(HeadforgeError, match="landmarks_through"):
+        tiny_config(landmarks_through="mesh").validate()

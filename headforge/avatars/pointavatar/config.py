@@ -99,6 +99,11 @@ class PointAvatarConfig(EngineConfig):
     # talking_bun they cost 4 dB of held-out PSNR (docs/pointavatar.md, deviation 13)
     w_landmarks: float = 0.0
     w_eyelids: float = 0.0
+    # head_model: the terms above as described; avatar: on the avatar's own landmarks instead (the
+    # canonical head model's, deformed by the avatar's deformer as its points are), in training too;
+    # on talking_bun 2-4 dB worse, AKD within a seed's spread (docs/pointavatar.md, deviation 20)
+    landmarks_through: str = "head_model"
+    landmarks_oval: bool = True  # False: MediaPipe's 36 face-oval landmarks (the 2D outline) left out
 
     @classmethod
     def quick(cls) -> "PointAvatarConfig":
@@ -142,6 +147,8 @@ class PointAvatarConfig(EngineConfig):
             raise HeadforgeError(f"surfel_min_cos must be in [0, 1] (0: discs), got {self.surfel_min_cos}")
         if self.init_cloud not in ("sphere", "head"):
             raise HeadforgeError(f"init_cloud must be sphere or head, got {self.init_cloud!r}")
+        if self.landmarks_through not in ("head_model", "avatar"):
+            raise HeadforgeError(f"landmarks_through must be head_model or avatar, got {self.landmarks_through!r}")
         if self.shading not in ("learned", "none"):
             raise HeadforgeError(f"shading must be learned or none, got {self.shading!r}")
         if self.init_points < 1 or self.max_points < self.init_points:

@@ -11,7 +11,9 @@ GT normal maps (and, as an option off in both presets, one of each visible point
 against the GT normal at its pixel). Per-frame fitting (``align`` / ``align_rgb``, test-time tracking) uses the RGB term only,
 as the paper's test-time tracking does; with ``w_landmarks`` / ``w_eyelids`` > 0 (an option beyond
 the paper, off in both presets: measured worse, docs/pointavatar.md) the fitting also pulls the head
-model's landmarks, less the avatar's landmark bias, to the detections.
+model's landmarks, less the avatar's landmark bias, to the detections; with ``landmarks_through``
+"avatar" it pulls the avatar's own landmarks (the canonical head model's, deformed as the points
+are) instead, in training too, where the head-model regulariser also holds the deformer there.
 """
 
 from __future__ import annotations
@@ -23,20 +25,23 @@ from headforge.avatars.pointavatar.config import PointAvatarConfig
 from headforge.avatars.pointavatar.model import SCALE, PointAvatarModel
 from headforge.avatars.registry import register
 from headforge.avatars.supervision import eyelid_term, landmark_term, normal_abs_term, point_normal_term
+from headforge.head.landmarks import FACE_OVAL, N_MEDIAPIPE
 from headforge.metrics.protocol import matte_on_white
 from headforge.render.camera import Cameras, project_points
 
 
-def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig) -> torch.Tensor:
+def head_model_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, *more) -> torch.Tensor:
     """lambda_e MSE(E, E^) + lambda_p MSE(P, P^) + lambda_w MSE(W, W^) (means over every element,
     as the authors' code), the targets from the nearest canonical head-model vertex of each
-    point's x_o (IMavatar's pseudo ground truth; the static bone's target weight is 0)."""
-    x_o = c.q * SCALE + avatar.centre + c.O
+    point's x_o (IMavatar's pseudo ground truth; the static bone's target weight is 0), over the
+    points of ``c`` and of any ``more`` canonical states (the avatar's own landmarks)."""
+    q, h, W, O = (torch.cat([getattr(s, k) for s in (c, *more)]) for k in "qhWO")
+    x_o = q * SCALE + avatar.centre + O
     nearest = avatar.nearest_canonical_vertices(x_o)
-    E, P = avatar.deformer.blendshapes(c.h)
+    E, P = avatar.deformer.blendshapes(h)
     e = (E - avatar.vertex_exprdirs[nearest]).pow(2).mean()
     p = (P - avatar.vertex_posedirs[nearest]).pow(2).mean()
-    w = (c.W - avatar.vertex_weights[nearest]).pow(2).mean()
+    w = (W - avatar.vertex_weights[nearest]).pow(2).mean()
     return config.w_expr * e + config.w_pose * p + config.w_weights * w
 
 
@@ -63,18 +68,28 @@ def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: to
 
 def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tensor, K: torch.Tensor,
                    config: PointAvatarConfig) -> dict[str, torch.Tensor]:
-    """The head model's landmarks at the frame parameters, less the avatar's ``landmark_bias``,
-    against ``detected`` (B, L, 2) pixels, and the eye opening (NHA's terms,
-    :mod:`headforge.avatars.supervision`): they steer the frame parameters only (the head model's
-    landmarks do not depend on the networks). The bias is the offset the trained avatar's frames
-    hold on the training frames (:func:`landmark_bias`): the points are not the head model, and a
-    frame pulled onto the bare model's landmark fit leaves the avatar's own features behind."""
-    lmk = avatar.landmarks(params)
+    """Landmarks against ``detected`` (B, L, 2) pixels, and the eye opening (NHA's terms,
+    :mod:`headforge.avatars.supervision`). ``landmarks_through`` "head_model": the head model's
+    landmarks at the frame parameters, less the avatar's ``landmark_bias``; they steer the frame
+    parameters only (the head model's landmarks do not depend on the networks). The bias is the
+    offset the trained avatar's frames hold on the training frames (:func:`landmark_bias`): the
+    points are not the head model, and a frame pulled onto the bare model's landmark fit leaves
+    the avatar's own features behind. "avatar": the avatar's own landmarks
+    (:meth:`PointAvatarModel.own_landmarks`, deformed as its points are), no bias; they steer
+    the frame parameters and, in training, the deformer."""
+    own = config.landmarks_through == "avatar"
+    lmk = avatar.own_landmarks(params) if own else avatar.landmarks(params)
     if lmk is None:
         return {}
+    if not config.landmarks_oval and detected.shape[1] == N_MEDIAPIPE:
+        # MediaPipe's face oval follows the 2D outline, the model's oval landmarks fixed surface
+        # points: pinned to the outline they widen the cheeks (skipped as undetected)
+        detected = detected.clone()
+        detected[:, FACE_OVAL] = float("nan")
     proj, res = project_points(lmk, K), config.resolution
-    n = min(proj.shape[1], avatar.landmark_bias.shape[0])
-    proj = proj[:, :n] - avatar.landmark_bias[:n]
+    if not own:
+        n = min(proj.shape[1], avatar.landmark_bias.shape[0])
+        proj = proj[:, :n] - avatar.landmark_bias[:n]
     out = {"landmarks": config.w_landmarks * landmark_term(proj, detected) / res * 10}
     if config.w_eyelids > 0 and min(proj.shape[1], detected.shape[1]) == 478:
         out["eyelids"] = config.w_eyelids * eyelid_term(proj, detected) / res * 10
@@ -97,6 +112,10 @@ def landmark_bias(avatar: PointAvatarModel, data) -> torch.Tensor:
 
 def uses_landmarks(config: PointAvatarConfig) -> bool:
     return config.w_landmarks > 0 or config.w_eyelids > 0
+
+
+def uses_landmark_bias(config: PointAvatarConfig) -> bool:
+    return uses_landmarks(config) and config.landmarks_through == "head_model"
 
 
 def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: PointAvatarConfig, stage: str,
@@ -134,7 +153,11 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
             out["normal_points"] = config.w_normal_points * point_normal_term(
                 pixels, r.point_normals, r.max_weight > 0.5, batch["gt_normals"], known)
     c = r.canonical
-    out["flame"] = config.w_flame * flame_factor(int(avatar.train_steps), config) * head_model_term(avatar, c, config)
+    own = uses_landmarks(config) and config.landmarks_through == "avatar"
+    if own:  # the avatar's own landmarks train the deformer and the frames with the images
+        out |= landmark_terms(avatar, params, batch["landmarks"], K, config)
+    more = (avatar.landmark_canonical(),) if own and len(avatar.canonical_landmarks) else ()
+    out["flame"] = config.w_flame * flame_factor(int(avatar.train_steps), config) * head_model_term(avatar, c, config, *more)
     out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()
     gen = torch.Generator().manual_seed(config.seed * 7919 + int(avatar.train_steps))
     avatar.train_steps += 1
@@ -186,14 +209,14 @@ class PointAvatarMethod(Method):
             changed = True
         if changed:
             ctx.state.setdefault("points", []).append([it, avatar.n_points, float(avatar.radius)])
-        if uses_landmarks(config) and it % config.val_every == 0:  # the validation's fitting uses it next
+        if uses_landmark_bias(config) and it % config.val_every == 0:  # the validation's fitting uses it next
             avatar.landmark_bias.copy_(landmark_bias(avatar, ctx.train))
         return changed
 
     def after_training(self, ctx) -> dict:
         from headforge.avatars.pointavatar.pictures import write_pictures
 
-        if uses_landmarks(ctx.config):  # before the held-out frames are fitted
+        if uses_landmark_bias(ctx.config):  # before the held-out frames are fitted
             ctx.avatar.landmark_bias.copy_(landmark_bias(ctx.avatar, ctx.train))
         write_pictures(ctx.avatar, ctx.train, ctx.config, ctx.state, ctx.run)
         return {"n_points": ctx.avatar.n_points, "point_radius_mm": round(1000 * float(ctx.avatar.radius), 3)}

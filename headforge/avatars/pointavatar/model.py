@@ -107,6 +107,10 @@ class PointAvatarModel(Avatar):
         self.register_buffer("centre", out.vertices[0].mean(0), persistent=False)
         ring = out.landmarks[0, list(INNER_LIP_LOOP)] if out.landmarks is not None and out.landmarks.shape[1] == N_MEDIAPIPE else None
         self.register_buffer("canonical_mouth", torch.zeros(0, 3) if ring is None else ring, persistent=False)
+        # the head model's landmarks in the canonical (jaw-open) pose, x_o space: the avatar's own
+        # landmarks are these positions deformed as cloud points there would be (own_landmarks)
+        lmk = torch.zeros(0, 3) if out.landmarks is None else out.landmarks[0]
+        self.register_buffer("canonical_landmarks", lmk.clone(), persistent=False)
         V = self.head.num_vertices
         exprdirs = self.head.blenddirs[self.head.n_shape:].reshape(-1, V, 3).transpose(0, 1)  # (V, n_expr, 3)
         self.register_buffer("vertex_exprdirs", exprdirs.contiguous(), persistent=False)
@@ -232,8 +236,10 @@ class PointAvatarModel(Avatar):
             self._cache = (key, state)
         return state
 
-    def deform(self, c: Canonical, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Deformed points (B, N, 3, posed head space, metres) and unit normals (B, N, 3) there.
+    def deform(self, c: Canonical, params: dict[str, torch.Tensor],
+               normals: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Deformed points (B, N, 3, posed head space, metres) and unit normals (B, N, 3) there
+        (None with ``normals`` False: ``c.grad`` and ``c.tangents`` are then not read).
 
         With u = M_c^-1 x_o + (psi - psi_c) E + (p - p_c) P the blendshaped rest point and
         x_d = R u + t (R, t: the blended frame transform), the Jacobian along a direction of q is
@@ -254,6 +260,8 @@ class PointAvatarModel(Avatar):
         u = r0 + torch.einsum("nw,bcw->bnc", c.h, G) + g[:, None]  # (B, N, 3)
         M = torch.einsum("nj,bjac->bnac", c.W, A)  # (B, N, 3, 4)
         x_d = torch.einsum("bnac,bnc->bna", M[..., :3], u) + M[..., 3]
+        if not normals:
+            return x_d, None
         n_c = torch.nn.functional.normalize(c.grad, dim=-1)
         if c.tangents is None:  # normals by the blended rotation alone (the ablation)
             n = torch.einsum("bnac,nc->bna", M[..., :3], torch.einsum("nab,nb->na", R_c_inv, n_c))
@@ -333,6 +341,35 @@ class PointAvatarModel(Avatar):
         B = params["translation"].shape[0]
         out = self.head(shape=self.shape.expand(B, -1), **{k: params[k] for k in FRAME_KEYS if k != "translation"})
         return None if out.landmarks is None else head_to_camera(out.landmarks, params["translation"])
+
+    def own_landmarks(self, params: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """(B, L, 3) camera-space landmarks carried by the avatar's own deformation: the points x_c
+        whose x_o = x_c + O(x_c) are the canonical head model's landmarks (jaw-open pose), deformed
+        by the deformer's blendshapes and skinning exactly as cloud points there are, so they move
+        with what the avatar draws rather than with the bare head model (:meth:`landmarks`).
+        Differentiable in the frame parameters and the deformer; None without landmarks."""
+        if len(self.canonical_landmarks) == 0:
+            return None
+        x_d, _ = self.deform(self.landmark_canonical(), params, normals=False)
+        return head_to_camera(x_d, params["translation"])
+
+    def landmark_canonical(self, iterations: int = 8) -> Canonical:
+        """The deformer's outputs at the canonical landmarks' points (:meth:`own_landmarks`): q
+        solves x_o(q) = q SCALE + centre + O(q) = landmark by fixed-point iteration (the offset is
+        smooth and a few cm at most; ``landmark_residual`` the largest miss, m), then h and W there
+        with gradients. O is the constant that makes x_o the landmark exactly: q is re-solved at
+        every call, so a gradient through O would push the cloud's offsets near the landmarks
+        every step and never be satisfied. Only ``q``, ``h``, ``W`` and ``O`` are meaningful."""
+        target = self.canonical_landmarks
+        q = (target - self.centre) / SCALE
+        with torch.no_grad():
+            for _ in range(iterations):
+                q = (target - self.centre - self.deformer(q)[2]) / SCALE
+        h, W, O = self.deformer(q)
+        self.landmark_residual = float((q * SCALE + self.centre + O.detach() - target).norm(dim=-1).max())
+        O = target - self.centre - q * SCALE
+        nothing = q.new_zeros(q.shape)
+        return Canonical(q, sdf=nothing[:, 0], grad=nothing, albedo=nothing, h=h, W=W, O=O, tangents=None)
 
     # ---- rendering --------------------------------------------------------------------------
     def posed(self, params: dict[str, torch.Tensor], training: bool = False):
