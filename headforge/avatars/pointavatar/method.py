@@ -67,7 +67,7 @@ def eikonal_term(avatar: PointAvatarModel, c, config: PointAvatarConfig, gen: to
 
 
 def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tensor, K: torch.Tensor,
-                   config: PointAvatarConfig) -> dict[str, torch.Tensor]:
+                   config: PointAvatarConfig, own_canonical=None) -> dict[str, torch.Tensor]:
     """Landmarks against ``detected`` (B, L, 2) pixels, and the eye opening (NHA's terms,
     :mod:`headforge.avatars.supervision`). ``landmarks_through`` "head_model": the head model's
     landmarks at the frame parameters, less the avatar's ``landmark_bias``; they steer the frame
@@ -76,9 +76,10 @@ def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tenso
     points are not the head model, and a frame pulled onto the bare model's landmark fit leaves
     the avatar's own features behind. "avatar": the avatar's own landmarks
     (:meth:`PointAvatarModel.own_landmarks`, deformed as its points are), no bias; they steer
-    the frame parameters and, in training, the deformer."""
+    the frame parameters and, in training, the deformer (``own_canonical``: its
+    :meth:`PointAvatarModel.landmark_canonical` when the caller has it)."""
     own = config.landmarks_through == "avatar"
-    lmk = avatar.own_landmarks(params) if own else avatar.landmarks(params)
+    lmk = avatar.own_landmarks(params, own_canonical) if own else avatar.landmarks(params)
     if lmk is None:
         return {}
     if not config.landmarks_oval and detected.shape[1] == N_MEDIAPIPE:
@@ -153,10 +154,12 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
             out["normal_points"] = config.w_normal_points * point_normal_term(
                 pixels, r.point_normals, r.max_weight > 0.5, batch["gt_normals"], known)
     c = r.canonical
-    own = uses_landmarks(config) and config.landmarks_through == "avatar"
-    if own:  # the avatar's own landmarks train the deformer and the frames with the images
-        out |= landmark_terms(avatar, params, batch["landmarks"], K, config)
-    more = (avatar.landmark_canonical(),) if own and len(avatar.canonical_landmarks) else ()
+    more = ()
+    if uses_landmarks(config) and config.landmarks_through == "avatar" and len(avatar.canonical_landmarks):
+        # the avatar's own landmarks train the deformer and the frames with the images; the
+        # head-model regulariser holds the deformer there too
+        more = (avatar.landmark_canonical(),)
+        out |= landmark_terms(avatar, params, batch["landmarks"], K, config, more[0])
     out["flame"] = config.w_flame * flame_factor(int(avatar.train_steps), config) * head_model_term(avatar, c, config, *more)
     out["sdf"] = config.w_sdf * c.sdf.pow(2).mean()
     gen = torch.Generator().manual_seed(config.seed * 7919 + int(avatar.train_steps))
