@@ -92,7 +92,7 @@ def landmark_terms(avatar: PointAvatarModel, params: dict, detected: torch.Tenso
         n = min(proj.shape[1], avatar.landmark_bias.shape[0])
         proj = proj[:, :n] - avatar.landmark_bias[:n]
     out = {"landmarks": config.w_landmarks * landmark_term(proj, detected) / res * 10}
-    if config.w_eyelids > 0 and min(proj.shape[1], detected.shape[1]) == 478:
+    if config.w_eyelids > 0 and min(proj.shape[1], detected.shape[1]) == N_MEDIAPIPE:
         out["eyelids"] = config.w_eyelids * eyelid_term(proj, detected) / res * 10
     return out
 
@@ -117,6 +117,10 @@ def uses_landmarks(config: PointAvatarConfig) -> bool:
 
 def uses_landmark_bias(config: PointAvatarConfig) -> bool:
     return uses_landmarks(config) and config.landmarks_through == "head_model"
+
+
+def uses_own_landmarks(config: PointAvatarConfig) -> bool:
+    return uses_landmarks(config) and config.landmarks_through == "avatar"
 
 
 def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: PointAvatarConfig, stage: str,
@@ -155,7 +159,7 @@ def losses(avatar: PointAvatarModel, batch: dict, K: torch.Tensor, config: Point
                 pixels, r.point_normals, r.max_weight > 0.5, batch["gt_normals"], known)
     c = r.canonical
     more = ()
-    if uses_landmarks(config) and config.landmarks_through == "avatar" and len(avatar.canonical_landmarks):
+    if uses_own_landmarks(config) and len(avatar.canonical_landmarks):
         # the avatar's own landmarks train the deformer and the frames with the images; the
         # head-model regulariser holds the deformer there too
         more = (avatar.landmark_canonical(),)

@@ -105,8 +105,6 @@ class PointAvatarModel(Avatar):
         self.register_buffer("canonical_transforms", self._with_static_bone(A_c)[0], persistent=False)
         self.register_buffer("canonical_pose_feature", p_c[0], persistent=False)
         self.register_buffer("centre", out.vertices[0].mean(0), persistent=False)
-        ring = out.landmarks[0, list(INNER_LIP_LOOP)] if out.landmarks is not None and out.landmarks.shape[1] == N_MEDIAPIPE else None
-        self.register_buffer("canonical_mouth", torch.zeros(0, 3) if ring is None else ring, persistent=False)
         # the head model's landmarks in the canonical (jaw-open) pose, x_o space: the avatar's own
         # landmarks are these positions deformed as cloud points there would be (own_landmarks)
         lmk = torch.zeros(0, 3) if out.landmarks is None else out.landmarks[0]
@@ -163,6 +161,14 @@ class PointAvatarModel(Avatar):
         self.points_per_pixel = int(config.points_per_pixel)
         self.hole_filling = bool(config.hole_filling)
         self.surfel_min_cos = float(config.surfel_min_cos)
+
+    @property
+    def canonical_mouth(self) -> torch.Tensor:
+        """(20, 3) the canonical inner-lip ring (x_o space, metres); (0, 3) for a head model
+        without MediaPipe's landmarks."""
+        if len(self.canonical_landmarks) != N_MEDIAPIPE:
+            return self.canonical_landmarks[:0]
+        return self.canonical_landmarks[list(INNER_LIP_LOOP)]
 
     def splat(self, cameras: Cameras, points: torch.Tensor, features: torch.Tensor, radius_px: torch.Tensor,
               normals: torch.Tensor):
@@ -289,7 +295,8 @@ class PointAvatarModel(Avatar):
         (the canonical, jaw-open pose) to the nearest of the canonical inner-lip ring and its
         centroid: 1 on the lips and in the opening, 0.02 two radii away."""
         x_o = (c.q * SCALE + self.centre + c.O).detach()
-        ring = torch.cat([self.canonical_mouth, self.canonical_mouth.mean(0, keepdim=True)]).to(x_o)
+        mouth = self.canonical_mouth
+        ring = torch.cat([mouth, mouth.mean(0, keepdim=True)]).to(x_o)
         d = torch.cdist(x_o, ring).min(1).values
         return torch.exp(-(d / self.mouth_albedo_radius) ** 2)
 
