@@ -200,6 +200,8 @@ def test_a_head_initialised_cloud_starts_on_the_canonical_head_model_surface(ren
         tiny_config(mouth_seed=-1).validate()
     with pytest.raises(HeadforgeError, match="upsample_spread"):
         tiny_config(upsample_spread=-0.5).validate()
+    with pytest.raises(HeadforgeError, match="lr_frames"):
+        tiny_config(lr_frames=0).validate()
 
 
 def test_prune_keeps_the_visible_points_and_upsample_doubles_within_the_radius(rendered):

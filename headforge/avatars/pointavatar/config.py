@@ -159,5 +159,8 @@ class PointAvatarConfig(EngineConfig):
         if self.mouth_albedo_width < 0 or self.mouth_albedo_radius <= 0:
             raise HeadforgeError(f"mouth_albedo_width must be >= 0 and mouth_albedo_radius > 0, got "
                                  f"{self.mouth_albedo_width}, {self.mouth_albedo_radius}")
+        if min(self.lr, self.lr_points, self.lr_frames) <= 0:
+            raise HeadforgeError(f"lr, lr_points and lr_frames must be > 0 (torch's Adam refuses 0), got "
+                                 f"{self.lr}, {self.lr_points}, {self.lr_frames}")
         if self.upsample_spread < 0 or self.mouth_seed < 0:
             raise HeadforgeError(f"upsample_spread and mouth_seed must be >= 0, got {self.upsample_spread}, {self.mouth_seed}")
