@@ -110,15 +110,15 @@ class PointAvatarConfig(EngineConfig):
         """Sized by the measured cost per step (docs/pointavatar.md: 2 CPU threads, 256^2, 2 frames:
         0.38 s at 5K points, 1.2 s at 20K, 10 s at 100K with these networks; the paper's 4.3 / 13 /
         43 s): at most 6400 points, 3000 iterations, the Eikonal term on 2000 + 2000 samples; the
-        albedo from its own 4 x 128 network with 10 encoding frequencies (deviation 12: a 3 x 64 one
-        with 8 took talking_bun's AKD 4.93 -> 4.09 px, talking_longhair's 3.60 -> 2.35; the wider one
-        halved the mouth-opening error again, docs/pointavatar.md); the head-model regulariser halved 4
+        albedo from its own 4 x 256 network with 10 encoding frequencies (deviation 12: a 3 x 64 one
+        with 8 took talking_bun's AKD 4.93 -> 4.09 px, talking_longhair's 3.60 -> 2.35; 4 x 256 with
+        10 took talking_bun's 4.43 -> 3.69 px, +0.4 dB, over two seeds, docs/pointavatar.md); the head-model regulariser halved 4
         times as the authors' code (talking_bun AKD 4.09 -> 3.71 px); the training frames' poses
         refined by a row-wise Adam, their expressions kept (deviation 16, docs/pointavatar.md); the
         prunes keep the points composited above 1/2 only (deviation 18: the short subject 0.9 dB and
         0.65 deg better than with the authors' rule, the bob level)."""
         return cls(iterations=3000, max_points=6400, upsample_every=500, prune_every=250, points_per_pixel=6,
-                   albedo_width=128, albedo_layers=4, albedo_frequencies=10,
+                   albedo_width=256, albedo_layers=4, albedo_frequencies=10,
                    canonical_width=64, canonical_layers=4, canonical_skip=2, frequencies=4, deformer_width=64,
                    deformer_layers=3, shading_width=32, eikonal_samples=2000, lr=5e-4, lr_points=5e-4,
                    val_every=500, checkpoint_every=250, tto_steps=50, tto_photometric_steps=0,
