@@ -25,20 +25,6 @@ import numpy as np
 import torch
 
 
-def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    """(B, H, W, 3) images blurred by a separable Gaussian of ``sigma`` px (edges replicated)."""
-    radius = max(1, int(round(3 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=images.dtype)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = kernel / kernel.sum()
-    chw = images.permute(0, 3, 1, 2)
-    C = chw.shape[1]
-    chw = torch.nn.functional.pad(chw, (radius, radius, radius, radius), mode="replicate")
-    chw = torch.nn.functional.conv2d(chw, kernel.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
-    chw = torch.nn.functional.conv2d(chw, kernel.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
-    return chw.permute(0, 2, 3, 1)
-
-
 def resample(images: torch.Tensor, factor: int) -> torch.Tensor:
     """(B, H, W, 3) images down-sampled by ``factor`` (area) and up again (bilinear)."""
     chw = images.permute(0, 3, 1, 2)
@@ -61,6 +47,7 @@ def main() -> None:
     from headforge.errors import HeadforgeError
     from headforge.metrics.image import cpbd, psnr
     from headforge.metrics.protocol import TrackedHead, composite, image_landmarks, landmark_scores
+    from headforge.render.matte import gaussian_blur
     from headforge.render.camera import Cameras
 
     try:
