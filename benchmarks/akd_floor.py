@@ -33,12 +33,23 @@ def resample(images: torch.Tensor, factor: int) -> torch.Tensor:
                                            align_corners=False).permute(0, 2, 3, 1)
 
 
+def sigma_list(text: str) -> list[float]:
+    """``--sigmas``: comma-separated positive floats (argparse reports anything else in one line)."""
+    try:
+        sigmas = [float(s) for s in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {text!r}") from None
+    if not sigmas or min(sigmas) <= 0:
+        raise argparse.ArgumentTypeError(f"blur sigmas must be > 0, got {text!r}")
+    return sigmas
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("run", type=Path)
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--every", type=int, default=5, help="score every N-th held-out frame")
-    parser.add_argument("--sigmas", default="0.5,1,2,3,4,6")
+    parser.add_argument("--sigmas", type=sigma_list, default="0.5,1,2,3,4,6", help="comma-separated blur std (px)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -47,8 +58,8 @@ def main() -> None:
     from headforge.errors import HeadforgeError
     from headforge.metrics.image import cpbd, psnr
     from headforge.metrics.protocol import TrackedHead, composite, image_landmarks, landmark_scores
-    from headforge.render.matte import gaussian_blur
     from headforge.render.camera import Cameras
+    from headforge.render.matte import gaussian_blur
 
     try:
         r = load_run(args.run, "cpu")
@@ -69,8 +80,9 @@ def main() -> None:
     frames_t, renders_t = torch.cat(frames), torch.cat(renders)
     truth = image_landmarks(frames_t)
 
-    def scored(images: torch.Tensor) -> dict:
-        s = landmark_scores(image_landmarks(images), truth)
+    def scored(images: torch.Tensor, landmarks: np.ndarray | None = None) -> dict:
+        """The figures of ``images`` against the frames; ``landmarks``: their detections when known."""
+        s = landmark_scores(image_landmarks(images) if landmarks is None else landmarks, truth)
         row = {k: round(float(np.nanmean(v)), 3) for k, v in s.items()}
         row["cpbd"] = round(float(np.mean([cpbd(im.numpy()) for im in images])), 4)
         row["psnr"] = round(float(np.mean([psnr(images[b:b + 1], frames_t[b:b + 1]).item()
@@ -79,7 +91,9 @@ def main() -> None:
 
     result = {"run": str(args.run), "frames": len(frames_t),
               "landmark_frames": int(np.isfinite(truth[:, 0, 0]).sum())}
-    degradations = {"none": frames_t} | {f"blur_{s}": gaussian_blur(frames_t, float(s)) for s in args.sigmas.split(",")}
+    result["none"] = scored(frames_t, truth)  # the frames' own detections: no second MediaPipe pass
+    print("none", json.dumps(result["none"]), flush=True)
+    degradations = {f"blur_{s:g}": gaussian_blur(frames_t, s) for s in args.sigmas}
     degradations |= {"resample_2": resample(frames_t, 2), "resample_4": resample(frames_t, 4), "avatar": renders_t}
     for name, images in degradations.items():
         result[name] = scored(images)

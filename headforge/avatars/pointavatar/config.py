@@ -112,11 +112,11 @@ class PointAvatarConfig(EngineConfig):
         43 s): at most 6400 points, 3000 iterations, the Eikonal term on 2000 + 2000 samples; the
         albedo from its own 4 x 256 network with 10 encoding frequencies (deviation 12: a 3 x 64 one
         with 8 took talking_bun's AKD 4.93 -> 4.09 px, talking_longhair's 3.60 -> 2.35; 4 x 256 with
-        10 took talking_bun's 4.43 -> 3.69 px, +0.4 dB, over two seeds, docs/pointavatar.md); the head-model regulariser halved 4
-        times as the authors' code (talking_bun AKD 4.09 -> 3.71 px); the training frames' poses
-        refined by a row-wise Adam, their expressions kept (deviation 16, docs/pointavatar.md); the
-        prunes keep the points composited above 1/2 only (deviation 18: the short subject 0.9 dB and
-        0.65 deg better than with the authors' rule, the bob level)."""
+        10 took talking_bun's 4.43 -> 3.69 px, +0.4 dB, over two seeds, docs/pointavatar.md); the
+        head-model regulariser halved 4 times as the authors' code (talking_bun AKD 4.09 -> 3.71 px);
+        the training frames' poses refined by a row-wise Adam, their expressions kept (deviation 16,
+        docs/pointavatar.md); the prunes keep the points composited above 1/2 only (deviation 18: the short
+        subject 0.9 dB and 0.65 deg better than with the authors' rule, the bob level)."""
         return cls(iterations=3000, max_points=6400, upsample_every=500, prune_every=250, points_per_pixel=6,
                    albedo_width=256, albedo_layers=4, albedo_frequencies=10,
                    canonical_width=64, canonical_layers=4, canonical_skip=2, frequencies=4, deformer_width=64,
@@ -161,7 +161,7 @@ class PointAvatarConfig(EngineConfig):
             raise HeadforgeError(f"mouth_albedo_width must be >= 0 and mouth_albedo_radius > 0, got "
                                  f"{self.mouth_albedo_width}, {self.mouth_albedo_radius}")
         if min(self.lr, self.lr_points, self.lr_frames) <= 0:
-            raise HeadforgeError(f"lr, lr_points and lr_frames must be > 0 (torch's Adam refuses 0), got "
-                                 f"{self.lr}, {self.lr_points}, {self.lr_frames}")
+            raise HeadforgeError(f"lr, lr_points and lr_frames must be > 0 (torch's Adam refuses 0), "
+                                 f"got {self.lr}, {self.lr_points}, {self.lr_frames}")
         if self.upsample_spread < 0 or self.mouth_seed < 0:
             raise HeadforgeError(f"upsample_spread and mouth_seed must be >= 0, got {self.upsample_spread}, {self.mouth_seed}")
