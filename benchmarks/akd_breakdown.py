@@ -9,7 +9,8 @@ from a fitting that does not find the held-out frames' expression (theirs is sma
 
 Prints one JSON line: run, split, frames, landmark_frames (both detections found), akd_px (all
 478; with --split val --every 1 the run's own val_akd_px), akd_<region>_px
-(headforge.metrics.protocol.landmark_regions), eye / mouth opening errors.
+(headforge.metrics.protocol.landmark_regions), eye / mouth opening errors, and the split of AKD
+into each frame's mean displacement (landmark_shift_px) and the rest (akd_unshifted_px).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def main() -> None:
         sys.exit(f"error: {exc}")
     data = data.subset(torch.arange(0, len(data), max(1, args.every)))
     summary, _ = score(r.method, r.avatar, data, r.config, landmarks=True, by_region=True)
-    keys = ["frames", "landmark_frames"] + [k for k in summary if k.startswith("akd_") or "opening" in k]
+    keys = ["frames", "landmark_frames"] + [k for k in summary if k.startswith("akd_") or "opening" in k or "shift" in k]
     print(json.dumps({"run": str(args.run), "split": args.split} | {k: summary[k] for k in keys}))
 
 

@@ -292,6 +292,12 @@ def test_landmark_scores_split_akd_by_face_region():
             np.testing.assert_allclose(s[f"akd_{name}_px"], 0.0)
     np.testing.assert_allclose(s["eye_opening_error_px"], 0.0)
     assert "akd_lips_px" not in landmark_scores(pred, truth)
+    # a face drawn 4 px to the right of the frame's: all of AKD is the shift
+    shifted = landmark_scores(truth + np.array([4.0, 0.0]), truth, by_region=True)
+    np.testing.assert_allclose(shifted["akd_px"], 4.0)
+    np.testing.assert_allclose(shifted["landmark_shift_px"], 4.0)
+    np.testing.assert_allclose(shifted["akd_unshifted_px"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(s["landmark_shift_px"], lips.sum() / 478)  # the lips' mean displacement, spread over the face
 
 
 def test_similarity_alignment_recovers_a_scaled_head():

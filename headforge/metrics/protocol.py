@@ -112,8 +112,10 @@ def landmark_scores(pred: np.ndarray, truth: np.ndarray, by_region: bool = False
     """Per-frame (B,) scores of MediaPipe landmarks ``pred`` on the avatar's images against
     ``truth`` on the frames ((B, 478, 2) px, NaN where no face was found): AKD over all 478, the
     eye- and mouth-opening errors, and with ``by_region`` AKD per :func:`landmark_regions` region
-    (``akd_<region>_px``) and the openings themselves (``<eye|mouth>_opening_<avatar|frame>_px``:
-    an error's sign, e.g. a mouth drawn closed)."""
+    (``akd_<region>_px``), the openings themselves (``<eye|mouth>_opening_<avatar|frame>_px``:
+    an error's sign, e.g. a mouth drawn closed), and the split of AKD into the frame's mean
+    displacement (``landmark_shift_px``: its length, the whole face drawn off by a shift) and what
+    is left with it removed (``akd_unshifted_px``)."""
     dist = np.linalg.norm(pred - truth, axis=-1)  # (B, 478)
     eyes, mouths = (_openings(pred, EYELID_PAIRS), _openings(truth, EYELID_PAIRS)), \
         (_openings(pred, MOUTH_PAIRS), _openings(truth, MOUTH_PAIRS))
@@ -124,6 +126,9 @@ def landmark_scores(pred: np.ndarray, truth: np.ndarray, by_region: bool = False
         out |= {f"akd_{name}_px": dist[:, idx].mean(-1) for name, idx in landmark_regions().items()}
         out |= {"eye_opening_avatar_px": eyes[0], "eye_opening_frame_px": eyes[1],
                 "mouth_opening_avatar_px": mouths[0], "mouth_opening_frame_px": mouths[1]}
+        shift = (pred - truth).mean(1, keepdims=True)  # (B, 1, 2)
+        out |= {"landmark_shift_px": np.linalg.norm(shift[:, 0], axis=-1),
+                "akd_unshifted_px": np.linalg.norm(pred - shift - truth, axis=-1).mean(-1)}
     return out
 
 
