@@ -139,6 +139,30 @@ def test_quick_refines_the_frames_poses_but_not_their_expressions(rendered):
         assert (id(avatar.frames["expression"]) in held) == refine
 
 
+def test_frames_held_where_the_tracker_put_them_stay_there_through_training(rendered, tmp_path):
+    """refine_poses and refine_expression false (quick since 2026-12-07, deviation 21): the training
+    frames' parameters leave training as tracked, while the held-out frames are still fitted; with
+    refine_poses the training frames' poses move."""
+    from safetensors.torch import load_file
+
+    from headforge.avatars.engine import fit
+    from headforge.avatars.run import RunAssets
+
+    assets = RunAssets.from_dataset(rendered)
+    train, val = assets.rows("train"), assets.rows("val")
+    moved = {}
+    for refine in (False, True):
+        fit("pointavatar", rendered, tmp_path / str(refine), tiny_config(refine_poses=refine, refine_expression=False),
+            log=lambda m: None)
+        state = load_file(tmp_path / str(refine) / "checkpoint.safetensors")
+        moved[refine] = {k: float((state[f"frames.{k}"][train] - assets.tracking[k][train].float()).abs().max())
+                         for k in ("translation", "neck_pose")}
+        if not refine:
+            assert max(moved[False].values()) < 1e-6, moved
+            assert float((state["frames.translation"][val] - assets.tracking["translation"][val].float()).abs().max()) > 0
+    assert min(moved[True].values()) > 1e-5, moved
+
+
 def test_the_head_model_regulariser_halves_at_the_authors_milestones():
     """Epochs 10, 20, 30, 40 of 63 in the authors' code: fractions of the iterations here."""
     from headforge.avatars.pointavatar.method import flame_factor

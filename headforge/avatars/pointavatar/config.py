@@ -68,6 +68,9 @@ class PointAvatarConfig(EngineConfig):
     # the training frames' expressions refined with their poses (the authors' code); quick: poses only
     # (talking_bun AKD 4.45 -> 3.92 px; docs/pointavatar.md, deviation 16)
     refine_expression: bool = True
+    # the training frames' poses and camera refined (the authors' code); quick: held where the tracker put them
+    # (talking_bun: refined, the frames drifted 2.5 px from the detections; docs/pointavatar.md, deviation 21)
+    refine_poses: bool = True
     w_rgb: float = 1.0
     w_mask: float = 1.0
     w_ssim: float = 0.0  # a weight-free stand-in for the VGG term (no pretrained weights here)

@@ -184,16 +184,20 @@ class PointAvatarMethod(Method):
         return PointAvatarModel(assets.head_data(), assets.tracking, canonical_expression, config)
 
     def stages(self, config: PointAvatarConfig) -> list[Stage]:
-        return [Stage("train", config.iterations, ("networks", "points", "frames"))]
+        refined = ("frames",) if config.refine_poses or config.refine_expression else ()
+        return [Stage("train", config.iterations, ("networks", "points") + refined)]
 
     def optimisers(self, avatar: PointAvatarModel, config: PointAvatarConfig) -> dict:
         nets = [p for n, p in avatar.named_parameters() if not n.startswith(("frames.", "points"))]
         return {"networks": torch.optim.Adam(nets, lr=config.lr),
                 "points": torch.optim.Adam([avatar.points], lr=config.lr_points),
                 # the authors' SparseAdam (one rate for expression, poses and camera): SGD at
-                # their rate left the frames where the tracker put them (docs/pointavatar.md, deviation 7)
-                "frames": RowAdam([p for k, p in avatar.frames.items() if config.refine_expression or k != "expression"],
-                                  lr=config.lr_frames)}
+                # their rate left the frames where the tracker put them (docs/pointavatar.md, deviation 7).
+                # Nothing refined: kept over every frame parameter, unstepped (stages), so that its
+                # zero_grad still clears their gradients
+                "frames": RowAdam([p for k, p in avatar.frames.items()
+                                   if (config.refine_expression if k == "expression" else config.refine_poses)]
+                                  or list(avatar.frames.values()), lr=config.lr_frames)}
 
     def losses(self, avatar, batch, K, config, stage, params=None):
         return losses(avatar, batch, K, config, stage, params)
