@@ -16,6 +16,12 @@ from headforge.errors import HeadforgeError
 sys.path.insert(0, str(Path(__file__).parent))
 
 
+def registry_stages(config):
+    from headforge.avatars import registry
+
+    return registry.get("pointavatar").stages(config)
+
+
 def tiny_config(**changes):
     from headforge.avatars.pointavatar.config import PointAvatarConfig
 
@@ -124,9 +130,15 @@ def test_row_adam_moves_only_the_frames_of_the_batch():
     assert opt.state[frames]["exp_avg"][untouched].abs().max() == 0
 
 
-def test_quick_refines_the_frames_poses_but_not_their_expressions(rendered):
-    """refine_expression false (quick): the frames' optimiser holds every per-frame tensor but the
-    expressions; true (paper, the authors'): all of them."""
+def test_the_frames_optimiser_holds_what_is_refined(rendered):
+    """refine_expression false: the frames' optimiser holds every per-frame tensor but the
+    expressions; true (paper, the authors'): all of them. Quick refines neither (deviations 16, 21)."""
+    from headforge.avatars.pointavatar.config import PointAvatarConfig
+
+    quick, paper = PointAvatarConfig.quick(), PointAvatarConfig.paper()
+    assert not (quick.refine_poses or quick.refine_expression) and paper.refine_poses and paper.refine_expression
+    assert [s.optimisers for s in registry_stages(quick)] == [("networks", "points")]
+    assert [s.optimisers for s in registry_stages(paper)] == [("networks", "points", "frames")]
     from headforge.avatars import registry
     from headforge.avatars.run import RunAssets
 
