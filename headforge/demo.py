@@ -36,6 +36,10 @@ def demo_config(iterations: int | None, method: str = "nha"):
         config = PointAvatarConfig.quick()
         config.scale_schedule(iterations)
         config.tto_steps = 30
+        # the quick preset's 4 x 128 deformer nearly doubles a step (0.71 against 0.39 s at 5K points,
+        # docs/pointavatar.md): with it the demo took 27 min on 2 shared cores; 3 x 64 keeps the
+        # demo at its measured 7 min, inside the 15-minute budget
+        config.deformer_width, config.deformer_layers = 64, 3
         return config
     from headforge.avatars.nha.config import NHAConfig
 

@@ -676,3 +676,14 @@ def test_the_avatars_own_landmarks_move_as_its_points_and_train_the_deformer(ren
     assert not torch.isclose(with_lmk, head_model_term(avatar, c, config))
     with pytest.raises(HeadforgeError, match="landmarks_through"):
         tiny_config(landmarks_through="mesh").validate()
+
+
+def test_the_pointavatar_demo_keeps_the_lighter_deformer_for_its_budget():
+    """The demo's 15-minute budget: the quick preset's 4 x 128 deformer took it to 27 min, so the
+    demo keeps 3 x 64 (docs/pointavatar.md); the rest is the quick preset, frames held."""
+    from headforge.avatars.pointavatar.config import PointAvatarConfig
+    from headforge.demo import demo_config
+
+    config, quick = demo_config(None, "pointavatar"), PointAvatarConfig.quick()
+    assert (config.deformer_width, config.deformer_layers) == (64, 3) != (quick.deformer_width, quick.deformer_layers)
+    assert config.albedo_width == quick.albedo_width and not config.refine_poses and config.iterations == 1500
