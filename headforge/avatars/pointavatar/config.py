@@ -65,7 +65,7 @@ class PointAvatarConfig(EngineConfig):
     lr: float = 1e-4
     lr_points: float = 1e-4
     lr_frames: float = 5e-4
-    # the training frames' expressions refined with their poses (the authors' code); quick: poses only
+    # the training frames' expressions refined with their poses (the authors' code); quick: held
     # (talking_bun AKD 4.45 -> 3.92 px; docs/pointavatar.md, deviation 16)
     refine_expression: bool = True
     # the training frames' poses and camera refined (the authors' code); quick: held where the tracker put them
