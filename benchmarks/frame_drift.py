@@ -25,14 +25,17 @@ import torch
 
 
 def shift_figures(projected: np.ndarray, detected: np.ndarray) -> dict[str, float | list[float]]:
-    """(B, L, 2) projected and detected landmarks (px; NaN where none was found) -> AKD, the mean
-    length of the per-frame mean displacement and its spread (std over frames of x and y)."""
-    d = projected - detected
-    d = d[np.isfinite(d).all((1, 2))]
-    if len(d) == 0:
+    """(B, L, 2) projected and detected landmarks (px; NaN where none was found) -> AKD and the mean
+    length of the per-frame mean displacement (the protocol's ``landmark_scores``), and that
+    displacement's spread (std over frames of x and y)."""
+    from headforge.metrics.protocol import landmark_scores
+
+    ok = np.isfinite(projected - detected).all((1, 2))
+    if not ok.any():
         raise ValueError("no frame has landmarks on both sides")
-    shift = d.mean(1)
-    return {"akd_px": float(np.linalg.norm(d, axis=-1).mean()), "shift_px": float(np.linalg.norm(shift, axis=-1).mean()),
+    scores = landmark_scores(projected[ok], detected[ok], by_region=True)
+    shift = (projected[ok] - detected[ok]).mean(1)
+    return {"akd_px": float(scores["akd_px"].mean()), "shift_px": float(scores["landmark_shift_px"].mean()),
             "shift_spread_px": [float(s) for s in shift.std(0)]}
 
 
